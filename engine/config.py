@@ -1,0 +1,323 @@
+"""The whole system's configuration: one validated pydantic model, loadable from YAML or JSON.
+
+Everything that crosses a boundary (a YAML file, the REST API, a shot record) goes through these models,
+so a bad value fails in one place with a message naming the field and what is allowed.
+
+Conventions used everywhere in the engine:
+- the trap array has ``ny`` rows and ``nx`` columns; a trap's flat index is ``row * nx + col`` (row-major);
+- a 1D chain is one row (``ny = 1``) along the x AOD;
+- frequencies in Hz, times in seconds, unless a name says otherwise (``_us``, ``_px``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+__all__ = [
+    "ArrayConfig",
+    "AWGConfig",
+    "CameraConfig",
+    "ConfigError",
+    "DevicesConfig",
+    "ImagingConfig",
+    "LoopConfig",
+    "SimConfig",
+    "SolverConfig",
+    "SystemConfig",
+    "TargetConfig",
+    "ToneAxisConfig",
+    "WaveformConfig",
+    "load_config",
+    "save_config",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used; the message names the field and what is allowed."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+PositiveFloat = Annotated[float, Field(gt=0)]
+Fraction = Annotated[float, Field(ge=0, le=1)]
+
+
+class ToneAxisConfig(_Model):
+    """Static RF tones of one AOD axis: tone k places the traps of row/column k.
+
+    Either an evenly spaced comb (``start_hz + k * spacing_hz``) or a CSV file with columns
+    ``alpha,nu,phi`` (amplitude as a fraction of full scale, frequency in Hz, phase in rad), one row per trap.
+    Every frequency must be a whole number of cycles per waveform slot (a multiple of 1/slot_duration_s),
+    so that static tones are phase-continuous from one slot to the next.
+    """
+
+    start_hz: PositiveFloat = 80e6
+    spacing_hz: PositiveFloat = 1e6
+    amplitude: Annotated[float, Field(gt=0, le=1)] = 0.02
+    phases: Literal["schroeder", "zero"] = "schroeder"
+    csv: str | None = Field(default=None, description="path to an alpha,nu,phi CSV; overrides the comb")
+
+
+class ArrayConfig(_Model):
+    """The trap array and how the AODs address it."""
+
+    nx: Annotated[int, Field(ge=1, le=1024)] = 64
+    ny: Annotated[int, Field(ge=1, le=1024)] = 1
+    trap_source: Literal["aod", "slm"] = Field(
+        default="aod",
+        description=(
+            "'aod': the static traps are the AOD's own tones (a 1D chain made by one AOD; moves are "
+            "conveyor-style block shifts). 'slm': static traps come from elsewhere (an SLM) and the crossed "
+            "AODs make mobile tweezers that extract, shift and implant atoms."
+        ),
+    )
+    x_tones: ToneAxisConfig = ToneAxisConfig()
+    y_tones: ToneAxisConfig = ToneAxisConfig(start_hz=80e6)
+
+    @model_validator(mode="after")
+    def _chain_needs_one_row(self) -> ArrayConfig:
+        if self.trap_source == "aod" and self.ny != 1:
+            raise ValueError(
+                f"trap_source 'aod' makes a 1D chain and needs ny = 1 (got ny = {self.ny}); "
+                "use trap_source 'slm' for a 2D grid"
+            )
+        return self
+
+    @property
+    def n_traps(self) -> int:
+        return self.nx * self.ny
+
+
+class CameraConfig(_Model):
+    """EMCCD settings, trap-to-pixel geometry and the readout-time model (paper, Sec. III.A)."""
+
+    roi_width_px: Annotated[int, Field(ge=1, le=4096)] = 1024
+    roi_height_px: Annotated[int, Field(ge=1, le=4096)] = 16
+    binning: tuple[Annotated[int, Field(ge=1, le=16)], Annotated[int, Field(ge=1, le=16)]] = (1, 1)
+    origin_px: tuple[float, float] = Field(default=(8.0, 8.0), description="(x, y) pixel of trap (row 0, col 0)")
+    col_step_px: tuple[float, float] = Field(default=(16.0, 0.0), description="(x, y) pixel step from column c to c+1")
+    row_step_px: tuple[float, float] = Field(default=(0.0, 16.0), description="(x, y) pixel step from row r to r+1")
+    psf_sigma_px: PositiveFloat = 1.2
+    exposure_s: PositiveFloat = 0.020
+    em_gain: Annotated[float, Field(ge=1, le=1000)] = 300.0
+    photons_per_atom: PositiveFloat = 400.0
+    background_photons_per_px: Annotated[float, Field(ge=0)] = 0.5
+    quantum_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
+    read_noise_e: Annotated[float, Field(ge=0)] = 60.0
+    bias_counts: Annotated[float, Field(ge=0, le=65535)] = 500.0
+    electrons_per_count: PositiveFloat = 20.0
+    vertical_shift_s: PositiveFloat = 4.33e-6
+    horizontal_rate_hz: PositiveFloat = 30e6
+    transfer_bytes_per_s: PositiveFloat = 1.431e9
+    timeout_s: PositiveFloat = 0.6
+
+    def trap_pixel_xy(self, row: int, col: int) -> tuple[float, float]:
+        x = self.origin_px[0] + col * self.col_step_px[0] + row * self.row_step_px[0]
+        y = self.origin_px[1] + col * self.col_step_px[1] + row * self.row_step_px[1]
+        return x, y
+
+
+class ImagingConfig(_Model):
+    """Module II: per-trap PSF-weighted sums and the occupancy threshold."""
+
+    psf_box_px: Annotated[int, Field(ge=1, le=31)] = 7
+    threshold: float | None = Field(
+        default=None,
+        description="counts above which a trap is occupied; null = derive from the camera model at configure time",
+    )
+
+    @model_validator(mode="after")
+    def _odd_box(self) -> ImagingConfig:
+        if self.psf_box_px % 2 == 0:
+            raise ValueError(f"psf_box_px must be odd so the box is centred on the trap (got {self.psf_box_px})")
+        return self
+
+
+class TargetConfig(_Model):
+    """Which traps must be filled.
+
+    ``centre``: ``count`` traps in the middle of a chain, or a full-width band of ``count / nx`` rows in the
+    middle of a grid (the paper's centre-compact target). ``rectangle``: rows ``row0..row0+rows-1`` x columns
+    ``col0..col0+cols-1``. ``mask``: an explicit list of strings of '0'/'1', one per row.
+    """
+
+    kind: Literal["centre", "rectangle", "mask"] = "centre"
+    count: Annotated[int, Field(ge=1)] | None = 32
+    row0: Annotated[int, Field(ge=0)] = 0
+    col0: Annotated[int, Field(ge=0)] = 0
+    rows: Annotated[int, Field(ge=1)] | None = None
+    cols: Annotated[int, Field(ge=1)] | None = None
+    mask: list[str] | None = None
+
+
+class SolverConfig(_Model):
+    """Module III: which planner turns occupancy + target into waveform slots."""
+
+    algorithm: str = "exact-1d"
+
+
+class WaveformConfig(_Model):
+    """Module IV: waveform slots and the transition shape used for every move."""
+
+    sample_rate_hz: PositiveFloat = 624e6
+    slot_duration_s: PositiveFloat = 10e-6
+    shape: Literal["min-jerk", "tanh", "erf"] = "min-jerk"
+    shape_sharpness: Annotated[float, Field(gt=0, le=50)] = Field(
+        default=6.0, description="tanh/erf steepness in units of 1/slot_duration_s (v*T); ignored by min-jerk"
+    )
+    table_max_bytes: Annotated[int, Field(ge=0)] = Field(
+        default=512 * 2**20, description="lookup-table budget; moves not in the table are synthesized directly"
+    )
+
+    @property
+    def slot_samples(self) -> int:
+        return int(round(self.sample_rate_hz * self.slot_duration_s))
+
+
+class AWGConfig(_Model):
+    """Module V: sequence-memory layout and (for the simulated card) the upload model."""
+
+    n_segments: Annotated[int, Field(ge=8, le=4096)] = 256
+    n_steps: Annotated[int, Field(ge=8, le=4096)] = 4096
+    waveforms_per_segment: Annotated[int, Field(ge=1, le=1024)] = 32
+    upload_bytes_per_s: PositiveFloat = 1.58e9
+    upload_jitter_s: Annotated[float, Field(ge=0)] = 5e-6
+    step_write_s: Annotated[float, Field(ge=0)] = 4e-6
+    max_memory_bytes: Annotated[int, Field(ge=1)] = 2**32
+
+
+class LoopConfig(_Model):
+    """The engine's shot loop."""
+
+    max_cycles: Annotated[int, Field(ge=1, le=100)] = 5
+    trigger: Literal["software", "hardware"] = "software"
+
+
+class SimConfig(_Model):
+    """The simulated lab: atoms, loss and time."""
+
+    seed: int | None = 1
+    loading_probability: Fraction = 0.6
+    survival_transfer: Fraction = 0.985
+    survival_step: Fraction = 0.985
+    vacuum_lifetime_s: PositiveFloat = 60.0
+    lossless: bool = False
+    time: Literal["simulated", "realtime"] = "simulated"
+
+
+class DevicesConfig(_Model):
+    """Which implementation drives each device."""
+
+    camera: Literal["sim"] = "sim"
+    awg: Literal["sim"] = "sim"
+
+
+class SystemConfig(_Model):
+    """Everything the engine needs to run shots."""
+
+    name: str = "llrs"
+    array: ArrayConfig = ArrayConfig()
+    camera: CameraConfig = CameraConfig()
+    imaging: ImagingConfig = ImagingConfig()
+    target: TargetConfig = TargetConfig()
+    solver: SolverConfig = SolverConfig()
+    waveforms: WaveformConfig = WaveformConfig()
+    awg: AWGConfig = AWGConfig()
+    loop: LoopConfig = LoopConfig()
+    sim: SimConfig = SimConfig()
+    devices: DevicesConfig = DevicesConfig()
+
+    @model_validator(mode="after")
+    def _consistent(self) -> SystemConfig:
+        wf = self.waveforms
+        if abs(wf.sample_rate_hz * wf.slot_duration_s - wf.slot_samples) > 1e-6:
+            raise ValueError(
+                "waveforms: sample_rate_hz * slot_duration_s must be a whole number of samples "
+                f"(got {wf.sample_rate_hz * wf.slot_duration_s:g})"
+            )
+        grid_hz = 1.0 / wf.slot_duration_s
+        for axis in ("x_tones", "y_tones"):
+            tones: ToneAxisConfig = getattr(self.array, axis)
+            if tones.csv is not None:
+                continue  # checked when the CSV is loaded
+            for name in ("start_hz", "spacing_hz"):
+                cycles = getattr(tones, name) / grid_hz
+                if abs(cycles - round(cycles)) > 1e-6:
+                    raise ValueError(
+                        f"array.{axis}.{name} = {getattr(tones, name):g} Hz must be a multiple of "
+                        f"1/slot_duration_s = {grid_hz:g} Hz so static tones stay phase-continuous"
+                    )
+            top = tones.start_hz + tones.spacing_hz * (self._n_tones(axis) - 1)
+            if top >= wf.sample_rate_hz / 2:
+                raise ValueError(
+                    f"array.{axis}: highest tone {top:g} Hz is above the Nyquist frequency "
+                    f"{wf.sample_rate_hz / 2:g} Hz; lower start_hz/spacing_hz or raise waveforms.sample_rate_hz"
+                )
+        cam = self.camera
+        for r, c in ((0, 0), (self.array.ny - 1, 0), (0, self.array.nx - 1), (self.array.ny - 1, self.array.nx - 1)):
+            x, y = cam.trap_pixel_xy(r, c)
+            if not (0 <= x < cam.roi_width_px and 0 <= y < cam.roi_height_px):
+                raise ValueError(
+                    f"camera: trap (row {r}, col {c}) images at pixel ({x:g}, {y:g}), outside the "
+                    f"{cam.roi_width_px}x{cam.roi_height_px} ROI; adjust origin_px/col_step_px/row_step_px or the ROI"
+                )
+        if self.awg.n_steps < 2 * self.awg.n_segments:
+            raise ValueError(
+                f"awg: n_steps ({self.awg.n_steps}) must be at least 2 * n_segments ({2 * self.awg.n_segments}): "
+                "every control step is paired with a failsafe step"
+            )
+        from engine.targets import build_target  # local import: targets depends on this module
+
+        build_target(self.target, nx=self.array.nx, ny=self.array.ny)
+        return self
+
+    def _n_tones(self, axis: str) -> int:
+        return self.array.nx if axis == "x_tones" else self.array.ny
+
+    def digest(self) -> str:
+        """A short stable hash of the configuration, stored with every shot."""
+        blob = json.dumps(self.model_dump(mode="json"), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def _format_validation_error(err: ValidationError, source: str) -> str:
+    lines = [f"invalid configuration in {source}:"]
+    for e in err.errors():
+        where = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        lines.append(f"  {where}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def config_from_dict(data: dict[str, Any], *, source: str = "<dict>") -> SystemConfig:
+    try:
+        return SystemConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_validation_error(err, source)) from None
+
+
+def load_config(path: str | Path) -> SystemConfig:
+    """Load and validate a YAML (or JSON) configuration file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ConfigError(f"cannot read configuration file {path}: {err.strerror}") from None
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path} is not valid YAML: {err}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path} must hold a mapping of sections (array, camera, ...), not {type(data).__name__}")
+    return config_from_dict(data, source=str(path))
+
+
+def save_config(config: SystemConfig, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))

@@ -1,0 +1,51 @@
+"""The simulated lab: one world of atoms shared by a simulated camera and a simulated AWG.
+
+``build_sim_lab(config)`` returns the device set the engine drives and the lab hooks (load atoms before a
+shot, tell the ground truth after it). The engine cannot tell these devices from hardware: the camera
+renders the world's atoms, and the AWG moves them by decoding the samples it plays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivers.sim.awg import SimAWG
+from drivers.sim.camera import SimCamera
+from drivers.sim.clock import SimClock
+from drivers.sim.world import World
+from engine.config import SystemConfig
+from engine.devices import DeviceSet
+
+__all__ = ["SimLab", "build_sim_lab"]
+
+
+class SimLab:
+    """Lab hooks for the engine (see ``engine.engine.Lab``) plus access to the world for tests."""
+
+    def __init__(self, world: World, awg: SimAWG) -> None:
+        self.world = world
+        self.awg = awg
+
+    def prepare_shot(self) -> None:
+        """Throw away the previous atoms and load a fresh array (Bernoulli per trap)."""
+        self.awg.sync()
+        self.world.load()
+
+    def ground_truth(self) -> np.ndarray:
+        self.awg.sync()
+        return self.world.occupancy().copy()
+
+
+def build_sim_lab(config: SystemConfig) -> tuple[DeviceSet, SimLab]:
+    clock = SimClock(config.sim.time)
+    seed = np.random.SeedSequence(config.sim.seed)
+    world_seed, camera_seed = seed.spawn(2)
+    world = World(config, clock=clock, rng=np.random.default_rng(world_seed))
+    awg = SimAWG(world, clock, config)
+
+    def atoms_now() -> np.ndarray:
+        awg.sync()
+        return world.occupancy()
+
+    camera = SimCamera(config, atoms=atoms_now, clock=clock, rng=np.random.default_rng(camera_seed))
+    return DeviceSet(camera=camera, awg=awg, clock=clock), SimLab(world, awg)

@@ -1,0 +1,306 @@
+"""The five-module loop: image, detect, solve, synthesize, stream, until the target is defect-free.
+
+``Engine`` runs shots on one device set and owns every buffer the loop touches; they are sized when a
+configuration is applied, so a cycle allocates no array. ``EngineThread`` gives the engine its own thread
+and a command queue, so a web server or a CLI can drive it without ever blocking the loop.
+"""
+
+from __future__ import annotations
+
+import gc
+import queue
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from engine.config import SystemConfig
+from engine.devices import DeviceError, DeviceSet, StepInfo
+from engine.imaging import Detector
+from engine.records import CycleRecord, Outcome, ShotRecord
+from engine.solvers import Solver, UnsolvableError
+from engine.streaming import Streamer
+from engine.targets import build_target
+from engine.timing import StageTimer
+from engine.waveforms import WaveformBank
+
+__all__ = ["Engine", "EngineThread", "Lab"]
+
+
+class Lab(Protocol):
+    """Optional hooks of a simulated lab: load atoms before a shot and report the ground truth after it.
+
+    Real hardware has no such object: the experiment loads the atoms and nobody knows the truth.
+    """
+
+    def prepare_shot(self) -> None: ...
+
+    def ground_truth(self) -> np.ndarray: ...
+
+
+@dataclass
+class _Pipeline:
+    """Everything built from one configuration; swapped in whole so a bad config never half-applies."""
+
+    config: SystemConfig
+    target: np.ndarray
+    detector: Detector
+    solver: Solver
+    bank: WaveformBank
+    streamer: Streamer
+    image: np.ndarray
+    occupancy: np.ndarray
+    history: np.ndarray  # bool[max_cycles + 1, ny, nx]
+    timer: StageTimer
+
+
+class Engine:
+    """Runs shots. Not thread-safe: one thread owns it (see ``EngineThread``)."""
+
+    def __init__(self, config: SystemConfig, devices: DeviceSet, *, lab: Lab | None = None) -> None:
+        self.devices = devices
+        self.lab = lab
+        self.shots_done = 0
+        self._p: _Pipeline | None = None
+        self.apply(config)
+
+    @property
+    def config(self) -> SystemConfig:
+        assert self._p is not None
+        return self._p.config
+
+    @property
+    def target(self) -> np.ndarray:
+        assert self._p is not None
+        return self._p.target
+
+    def apply(self, config: SystemConfig) -> None:
+        """Build the pipeline for ``config``, compile every kernel, then program the devices.
+
+        If anything fails the previous configuration stays in force and the error propagates.
+        """
+        dev = self.devices
+        arr = config.array
+        target = build_target(config.target, nx=arr.nx, ny=arr.ny)
+        bank = WaveformBank(config)
+        pipeline = _Pipeline(
+            config=config,
+            target=target,
+            detector=Detector(config),
+            solver=Solver(nx=arr.nx, ny=arr.ny, algorithm=config.solver.algorithm, trap_source=arr.trap_source),
+            bank=bank,
+            streamer=Streamer(config, bank, dev.awg, dev.clock),
+            image=np.zeros(dev.camera.frame_shape, dtype=np.uint16),
+            occupancy=np.zeros((arr.ny, arr.nx), dtype=bool),
+            history=np.zeros((config.loop.max_cycles + 1, arr.ny, arr.nx), dtype=bool),
+            timer=StageTimer(dev.clock.now_s, config.loop.max_cycles + 1),
+        )
+        dev.camera.configure(config.camera)
+        if dev.camera.frame_shape != pipeline.image.shape:
+            pipeline.image = np.zeros(dev.camera.frame_shape, dtype=np.uint16)
+        dev.awg.stop()
+        dev.awg.configure(config.awg, n_channels=bank.n_channels, sample_rate_hz=config.waveforms.sample_rate_hz)
+        pipeline.streamer.program_idle()
+        dev.awg.start(pipeline.streamer.layout.idle_step)
+        self._p = pipeline
+
+    def run_shot(self, shot_id: int | None = None) -> ShotRecord:
+        """Run one shot: load (simulated lab), then cycles until success, unsolvable or max_cycles."""
+        p = self._p
+        assert p is not None
+        shot_id = self.shots_done if shot_id is None else shot_id
+        record = ShotRecord(
+            shot_id=shot_id, config_digest=p.config.digest(), algorithm=p.config.solver.algorithm, target=p.target
+        )
+        clock = self.devices.clock
+        record.t_start_s = clock.now_s()
+        if self.lab is not None:
+            self.lab.prepare_shot()
+        p.timer.reset()
+        latencies = np.zeros(p.config.loop.max_cycles + 1)
+        plan_stats = np.zeros((p.config.loop.max_cycles + 1, 3), dtype=np.int64)  # slots, steps, underruns
+        n_cycles = 0
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
+        try:
+            for cycle in range(p.config.loop.max_cycles + 1):
+                p.timer.cycle = cycle
+                n_cycles = cycle + 1
+                outcome = self._cycle(p, cycle, latencies, plan_stats)
+                if outcome is not None:
+                    record.outcome = outcome
+                    break
+        except (DeviceError, RuntimeError, ValueError) as err:
+            record.outcome = Outcome.FAULT
+            record.fault = f"{type(err).__name__}: {err}"
+            self._hold_atoms()
+        finally:
+            if gc_was_enabled:
+                gc.enable()
+        record.duration_s = clock.now_s() - record.t_start_s
+        for c in range(n_cycles):
+            occ = p.history[c].copy()
+            record.cycles.append(
+                CycleRecord(
+                    index=c,
+                    occupancy=occ,
+                    atoms=int(occ.sum()),
+                    defects=int((p.target & ~occ).sum()),
+                    stage_s=p.timer.cycle_dict(c),
+                    n_slots=int(plan_stats[c, 0]),
+                    n_steps=int(plan_stats[c, 1]),
+                    underruns=int(plan_stats[c, 2]),
+                    latency_s=float(latencies[c]),
+                )
+            )
+        if self.lab is not None:
+            truth = self.lab.ground_truth()
+            record.truth = {
+                "occupancy_rows": ["".join("1" if v else "0" for v in row) for row in truth],
+                "target_filled": bool(np.all(truth[p.target])),
+            }
+        self.shots_done += 1
+        return record
+
+    def _cycle(self, p: _Pipeline, cycle: int, latencies: np.ndarray, plan_stats: np.ndarray) -> Outcome | None:
+        dev = self.devices
+        timer = p.timer
+        timer.start()
+        dev.awg.pulse("camera")
+        dev.camera.trigger()
+        dev.camera.read(p.image, timeout_s=p.config.camera.timeout_s)
+        t_image = timer.lap("I.acquire")
+        p.detector.weighted_sums(p.image)
+        timer.lap("II.detect")
+        p.detector.threshold(p.occupancy)
+        timer.lap("II.threshold")
+        p.history[cycle] = p.occupancy
+        if np.all(p.occupancy[p.target]):
+            return Outcome.SUCCESS
+        if cycle == p.config.loop.max_cycles:
+            return Outcome.MAX_CYCLES
+        try:
+            p.solver.solve_moves(p.occupancy, p.target)
+        except UnsolvableError:
+            return Outcome.UNSOLVABLE
+        timer.lap("III.solve")
+        plan = p.solver.batch()
+        timer.lap("III.batch")
+        report = p.streamer.stream(plan.operations, timer)
+        latencies[cycle] = report.t_started_s - t_image
+        plan_stats[cycle] = (report.n_slots, plan.n_steps, report.underruns)
+        return None
+
+    def _hold_atoms(self) -> None:
+        """After a fault: make the card loop the hold waveform so every trapped atom stays trapped."""
+        p = self._p
+        assert p is not None
+        lay = p.streamer.layout
+        try:
+            self.devices.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=lay.idle_step))
+        except DeviceError:
+            pass  # the card itself failed; the fault already says why
+
+
+class EngineThread:
+    """Owns an ``Engine`` on a dedicated thread; other threads send it commands and get futures back.
+
+    Commands run strictly one after another, so two callers asking for a shot at once are serialized.
+    ``run_continuous`` keeps running shots until ``stop`` (or another command) arrives.
+    """
+
+    def __init__(self, build: Callable[[], Engine], *, name: str = "llrs-engine") -> None:
+        self._build = build
+        self._commands: queue.Queue[tuple[Callable[[Engine], Any], Future[Any]] | None] = queue.Queue()
+        self._continuous = threading.Event()
+        self._ready = threading.Event()
+        self._listeners: list[Callable[[ShotRecord], None]] = []
+        self._error: BaseException | None = None
+        self.engine: Engine | None = None
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def start(self, *, timeout_s: float = 300.0) -> EngineThread:
+        """Start the thread and wait until the engine is built and every kernel compiled."""
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise TimeoutError(f"the engine was not ready after {timeout_s} s")
+        if self._error is not None:
+            raise self._error
+        return self
+
+    def __enter__(self) -> EngineThread:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def add_listener(self, callback: Callable[[ShotRecord], None]) -> None:
+        """``callback(record)`` runs on the engine thread after every shot; keep it short and non-blocking."""
+        self._listeners.append(callback)
+
+    def submit(self, command: Callable[[Engine], Any]) -> Future[Any]:
+        future: Future[Any] = Future()
+        self._continuous.clear()
+        self._commands.put((command, future))
+        return future
+
+    def run_shots(self, n: int) -> Future[list[ShotRecord]]:
+        return self.submit(lambda engine: [self._shot(engine) for _ in range(n)])
+
+    def run_continuous(self) -> None:
+        self._continuous.set()
+        self._commands.put((lambda engine: None, Future()))
+
+    def stop(self) -> None:
+        self._continuous.clear()
+
+    @property
+    def running_continuously(self) -> bool:
+        return self._continuous.is_set()
+
+    def close(self) -> None:
+        self._continuous.clear()
+        if self._thread.is_alive():
+            self._commands.put(None)
+            self._thread.join(timeout=10)
+
+    def _shot(self, engine: Engine) -> ShotRecord:
+        record = engine.run_shot()
+        for listener in self._listeners:
+            listener(record)
+        return record
+
+    def _run(self) -> None:
+        try:
+            self.engine = self._build()
+        except BaseException as err:  # reported to the caller of start()
+            self._error = err
+            self._ready.set()
+            return
+        self._ready.set()
+        engine = self.engine
+        while True:
+            if self._continuous.is_set() and self._commands.empty():
+                self._shot(engine)
+                continue
+            item = self._commands.get()
+            if item is None:
+                break
+            command, future = item
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(command(engine))
+            except BaseException as err:
+                future.set_exception(err)
+        self.devices_close(engine)
+
+    @staticmethod
+    def devices_close(engine: Engine) -> None:
+        try:
+            engine.devices.close()
+        except DeviceError:
+            pass

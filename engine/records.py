@@ -1,0 +1,81 @@
+"""What the engine keeps of every shot: occupancy per cycle, plan summaries, stage times and the outcome."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+import numpy as np
+
+__all__ = ["CycleRecord", "Outcome", "ShotRecord", "occupancy_to_rows"]
+
+
+class Outcome(str, Enum):
+    SUCCESS = "success"  # every target trap occupied (judged from the image)
+    UNSOLVABLE = "unsolvable"  # fewer atoms than target traps
+    MAX_CYCLES = "max_cycles"  # still defects after max_cycles cycles
+    FAULT = "fault"  # a device or the solver failed; see ShotRecord.fault
+
+
+def occupancy_to_rows(occupancy: np.ndarray) -> list[str]:
+    """``bool[ny, nx]`` as one string of '0'/'1' per row: compact, readable JSON."""
+    return ["".join("1" if v else "0" for v in row) for row in np.asarray(occupancy, dtype=bool)]
+
+
+@dataclass
+class CycleRecord:
+    index: int
+    occupancy: np.ndarray  # bool[ny, nx], as detected at the start of the cycle
+    atoms: int
+    defects: int  # target traps without an atom
+    stage_s: dict[str, float] = field(default_factory=dict)
+    n_slots: int = 0
+    n_steps: int = 0
+    underruns: int = 0
+    latency_s: float = 0.0  # image in memory -> playback started
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "index": self.index,
+            "occupancy": occupancy_to_rows(self.occupancy),
+            "atoms": self.atoms,
+            "defects": self.defects,
+            "stage_us": {k: v * 1e6 for k, v in self.stage_s.items()},
+            "n_slots": self.n_slots,
+            "n_steps": self.n_steps,
+            "underruns": self.underruns,
+            "latency_us": self.latency_s * 1e6,
+        }
+
+
+@dataclass
+class ShotRecord:
+    shot_id: int
+    config_digest: str
+    algorithm: str
+    target: np.ndarray
+    outcome: Outcome = Outcome.MAX_CYCLES
+    fault: str | None = None
+    cycles: list[CycleRecord] = field(default_factory=list)
+    t_start_s: float = 0.0
+    duration_s: float = 0.0
+    images: list[np.ndarray] | None = None
+    truth: dict[str, Any] = field(default_factory=dict)  # simulated lab only: the world's ground truth
+
+    @property
+    def success(self) -> bool:
+        return self.outcome is Outcome.SUCCESS
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "shot_id": self.shot_id,
+            "config_digest": self.config_digest,
+            "algorithm": self.algorithm,
+            "target": occupancy_to_rows(self.target),
+            "outcome": self.outcome.value,
+            "fault": self.fault,
+            "cycles": [c.to_dict() for c in self.cycles],
+            "duration_s": self.duration_s,
+            "truth": self.truth,
+        }

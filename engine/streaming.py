@@ -1,0 +1,243 @@
+"""Module V: play a plan's waveform slots on a sequence-mode AWG without ever leaving the atoms untrapped.
+
+Memory layout (segments and steps of the card, fixed when a configuration is applied)::
+
+    segment 0            idle: the hold waveform (static tones of a chain, silence for SLM traps)
+    segments 1..K        control segments, ``waveforms_per_segment`` slots each
+    segments K+1..2K     failsafe segments: the tones where the paired control segment leaves them, steady
+    segment 2K+1         the short-path segment (up to two control segments' worth of slots)
+
+    step 0               idle, loops on itself until the host points it at a control step
+    step 2j+1            control step j  -> next: its failsafe step (until the next segment is uploaded)
+    step 2j+2            failsafe step j -> loops on itself (until the host points it at the next control step)
+    step 2K+1            the short-path step -> next: idle
+
+A cycle uploads control segments 0 and 1, then points idle at control step 0: that is the latency. While
+segment k plays, segment k+2 is rendered and uploaded, and only then are control step k+1 and its failsafe
+pointed at it. If the host is late, the card falls into the failsafe after segment k+1, which holds the
+mobile tweezers where that segment left them (a pause, not a loss), and resumes when the pointer arrives.
+The last control step points back at idle. Plans of at most two segments' worth of slots take the short
+path: one upload, one pointer, no failsafe needed. Segments are written at their exact length (no padding
+to whole segments), so a 20-slot plan streams in 20 slots, not 64.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from engine.config import SystemConfig
+from engine.devices import Clock, SequenceAWG, StepInfo
+from engine.operations import Operations
+from engine.timing import StageTimer
+from engine.waveforms import WaveformBank
+
+__all__ = ["SequenceLayout", "StreamReport", "Streamer"]
+
+
+@dataclass(frozen=True)
+class SequenceLayout:
+    """Where everything lives in the card's memory (see the module docstring)."""
+
+    n_control: int
+    idle_segment: int = 0
+    idle_step: int = 0
+
+    @classmethod
+    def for_config(cls, config: SystemConfig) -> SequenceLayout:
+        n_control = (config.awg.n_segments - 2) // 2
+        if n_control < 2:
+            raise ValueError(f"awg.n_segments = {config.awg.n_segments} leaves fewer than 2 control segments")
+        layout = cls(n_control=n_control)
+        if layout.short_step >= config.awg.n_steps:
+            raise ValueError(
+                f"the sequence layout needs {layout.short_step + 1} steps but awg.n_steps is {config.awg.n_steps}"
+            )
+        return layout
+
+    def control_segment(self, k: int) -> int:
+        return 1 + k
+
+    def failsafe_segment(self, k: int) -> int:
+        return 1 + self.n_control + k
+
+    @property
+    def short_segment(self) -> int:
+        return 1 + 2 * self.n_control
+
+    def control_step(self, k: int) -> int:
+        return 1 + 2 * k
+
+    def failsafe_step(self, k: int) -> int:
+        return 2 + 2 * k
+
+    @property
+    def short_step(self) -> int:
+        return 1 + 2 * self.n_control
+
+    def is_failsafe_step(self, step: int) -> bool:
+        return 2 <= step <= 2 * self.n_control and step % 2 == 0
+
+
+@dataclass
+class StreamReport:
+    """What happened while one plan streamed."""
+
+    n_slots: int = 0
+    n_segments: int = 0
+    short_path: bool = False
+    underruns: int = 0
+    latency_s: float = 0.0  # from the start of rendering to the pointer that starts playback
+    t_started_s: float = 0.0  # clock time of that pointer write
+
+
+class Streamer:
+    """Streams ``Operations`` to a ``SequenceAWG`` through a ``WaveformBank``; buffers sized at construction."""
+
+    def __init__(self, config: SystemConfig, bank: WaveformBank, awg: SequenceAWG, clock: Clock) -> None:
+        self.bank = bank
+        self.awg = awg
+        self.clock = clock
+        self.layout = SequenceLayout.for_config(config)
+        self.slots_per_segment = config.awg.waveforms_per_segment
+        self.timeout_s = 1.0
+        slot = bank.slot_samples
+        ch = bank.n_channels
+        self._segment_buf = np.zeros((self.slots_per_segment * slot, ch), dtype=np.int16)
+        self._short_buf = np.zeros((2 * self.slots_per_segment * slot, ch), dtype=np.int16)
+        self._failsafe_buf = np.zeros((slot, ch), dtype=np.int16)
+        self._keys = np.zeros(bank.max_keys(2 * self.slots_per_segment), dtype=np.int64)
+        # idle + K control + K failsafe + the short-path segment, at their largest
+        total = (
+            self._failsafe_buf.nbytes
+            + self.layout.n_control * (self._segment_buf.nbytes + self._failsafe_buf.nbytes)
+            + self._short_buf.nbytes
+        )
+        if total > config.awg.max_memory_bytes:
+            raise ValueError(
+                f"the sequence layout needs {total / 2**20:.0f} MiB of AWG memory but awg.max_memory_bytes is "
+                f"{config.awg.max_memory_bytes / 2**20:.0f} MiB; lower awg.n_segments or waveforms_per_segment"
+            )
+
+    @property
+    def max_slots(self) -> int:
+        return self.layout.n_control * self.slots_per_segment
+
+    def program_idle(self) -> None:
+        """Upload the hold waveform and point the idle step at itself (done when a configuration is applied)."""
+        lay = self.layout
+        self.awg.write_segment(lay.idle_segment, self.bank.hold())
+        self.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=lay.idle_step))
+
+    def stream(self, ops: Operations, timer: StageTimer | None = None) -> StreamReport:
+        """Play every slot of ``ops`` and return once the card is back at the idle step."""
+        n = len(ops)
+        report = StreamReport(n_slots=n)
+        if n == 0:
+            return report
+        if n > self.max_slots:
+            raise ValueError(
+                f"the plan has {n} waveform slots but the AWG layout holds at most {self.max_slots} "
+                f"({self.layout.n_control} control segments x {self.slots_per_segment}); "
+                "raise awg.n_segments or awg.waveforms_per_segment"
+            )
+        if n <= 2 * self.slots_per_segment:
+            self._stream_short(ops, report, timer)
+        else:
+            self._stream_segments(ops, report, timer)
+        return report
+
+    def _lookup_and_render(self, ops: Operations, first: int, count: int, out: np.ndarray, timer: StageTimer | None) -> None:
+        self.bank.lookup(ops, first, count, self._keys)
+        if timer is not None:
+            timer.lap("IV.lookup")
+        self.bank.render(ops, first, count, out)
+        if timer is not None:
+            timer.lap("IV.render")
+
+    def _start(self, step: int, report: StreamReport, t0: float) -> None:
+        lay = self.layout
+        self.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=step))
+        report.t_started_s = self.clock.now_s()
+        report.latency_s = report.t_started_s - t0
+
+    def _release_idle(self) -> None:
+        """Once playback has left idle, make idle loop on itself again so the plan ends there."""
+        lay = self.layout
+        self.awg.wait_for_step(lay.control_step(0), timeout_s=self.timeout_s)
+        self.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=lay.idle_step))
+
+    def _stream_short(self, ops: Operations, report: StreamReport, timer: StageTimer | None) -> None:
+        lay = self.layout
+        n = len(ops)
+        samples = n * self.bank.slot_samples
+        t0 = self.clock.now_s()
+        if timer is not None:
+            timer.start()
+        self._lookup_and_render(ops, 0, n, self._short_buf, timer)
+        self.awg.write_segment(lay.short_segment, self._short_buf[:samples])
+        if timer is not None:
+            timer.lap("IV.upload")
+        self.awg.write_step(lay.short_step, StepInfo(segment=lay.short_segment, next_step=lay.idle_step))
+        self._start(lay.short_step, report, t0)
+        if timer is not None:
+            timer.lap("IV.sequence")
+        self.awg.wait_for_step(lay.short_step, timeout_s=self.timeout_s)
+        self.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=lay.idle_step))
+        self.awg.wait_for_step(lay.idle_step, timeout_s=self.timeout_s + n * self._slot_s())
+        if timer is not None:
+            timer.lap("V.stream")
+        report.short_path = True
+        report.n_segments = 1
+
+    def _slot_s(self) -> float:
+        return self.bank.slot_samples / self.awg.sample_rate_hz
+
+    def _upload_segment(self, ops: Operations, k: int, n_segments: int, timer: StageTimer | None) -> None:
+        """Render and upload control segment k and its failsafe, and point its step at the failsafe (or idle)."""
+        lay = self.layout
+        first = k * self.slots_per_segment
+        count = min(self.slots_per_segment, len(ops) - first)
+        self._lookup_and_render(ops, first, count, self._segment_buf, timer)
+        self.awg.write_segment(lay.control_segment(k), self._segment_buf[: count * self.bank.slot_samples])
+        last = k == n_segments - 1
+        if not last:
+            self.bank.render_failsafe(ops, first + count - 1, self._failsafe_buf)
+            self.awg.write_segment(lay.failsafe_segment(k), self._failsafe_buf)
+            self.awg.write_step(lay.failsafe_step(k), StepInfo(segment=lay.failsafe_segment(k), next_step=lay.failsafe_step(k)))
+        next_step = lay.idle_step if last else lay.failsafe_step(k)
+        self.awg.write_step(lay.control_step(k), StepInfo(segment=lay.control_segment(k), next_step=next_step))
+        if timer is not None:
+            timer.lap("IV.upload")
+
+    def _link(self, k: int) -> None:
+        """Point control step k-1 and its failsafe at control step k (segment k is in memory)."""
+        lay = self.layout
+        nxt = lay.control_step(k)
+        self.awg.write_step(lay.control_step(k - 1), StepInfo(segment=lay.control_segment(k - 1), next_step=nxt))
+        self.awg.write_step(lay.failsafe_step(k - 1), StepInfo(segment=lay.failsafe_segment(k - 1), next_step=nxt))
+
+    def _stream_segments(self, ops: Operations, report: StreamReport, timer: StageTimer | None) -> None:
+        lay = self.layout
+        n_segments = -(-len(ops) // self.slots_per_segment)
+        report.n_segments = n_segments
+        t0 = self.clock.now_s()
+        if timer is not None:
+            timer.start()
+        self._upload_segment(ops, 0, n_segments, timer)
+        self._upload_segment(ops, 1, n_segments, timer)
+        self._link(1)
+        self._start(lay.control_step(0), report, t0)
+        if timer is not None:
+            timer.lap("IV.sequence")
+        self._release_idle()
+        for k in range(2, n_segments):
+            self._upload_segment(ops, k, n_segments, None)
+            if lay.is_failsafe_step(self.awg.current_step()):
+                report.underruns += 1
+            self._link(k)
+        self.awg.wait_for_step(lay.idle_step, timeout_s=self.timeout_s + len(ops) * self._slot_s())
+        if timer is not None:
+            timer.lap("V.stream")
+

@@ -1,0 +1,96 @@
+"""Per-stage timing of a cycle, named after the paper's Table 1.
+
+The timer writes into a preallocated array, so timing a cycle allocates nothing. Times come from the
+device set's clock (see ``engine.devices``), so on the simulated lab device waits count with their
+modelled durations.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+__all__ = ["STAGES", "PAPER_TABLE1_MS", "StageTimer", "summarize_us"]
+
+#: Stage names, in loop order. The paper's Table 1 rows they correspond to are in PAPER_TABLE1_MS.
+STAGES: tuple[str, ...] = (
+    "I.acquire",  # trigger -> frame in host memory (exposure + transfer + readout)
+    "II.detect",  # PSF-weighted sums per trap
+    "II.threshold",  # counts -> occupancy
+    "III.solve",  # the rearrangement problem
+    "III.batch",  # moves -> waveform slots
+    "IV.lookup",  # slots of the first two segments -> table keys
+    "IV.render",  # samples of the first two segments assembled into upload buffers
+    "IV.upload",  # first two segments (and their failsafes) uploaded to the AWG
+    "IV.sequence",  # step-memory writes that start playback
+    "V.stream",  # playback start -> back at the idle step (remaining uploads overlap with it)
+)
+
+#: The paper's Table 1 (ms) for its three problems, for side-by-side reports.
+PAPER_TABLE1_MS: dict[str, dict[str, float]] = {
+    "1x64": {"I.acquire": 25.454, "II.detect": 0.259, "II.threshold": 0.001, "III.solve": 0.005,
+             "III.batch": 0.003, "IV.lookup": 0.078, "IV.upload": 0.553, "IV.sequence": 0.000, "V.stream": 0.746},
+    "16x32": {"I.acquire": 30.850, "II.detect": 0.279, "II.threshold": 0.002, "III.solve": 0.035,
+              "III.batch": 0.024, "IV.lookup": 0.046, "IV.upload": 0.593, "IV.sequence": 0.025, "V.stream": 2.765},
+    "32x64": {"I.acquire": 46.250, "II.detect": 0.269, "II.threshold": 0.007, "III.solve": 0.100,
+              "III.batch": 0.077, "IV.lookup": 0.038, "IV.upload": 0.574, "IV.sequence": 0.023, "V.stream": 8.496},
+}
+
+_INDEX = {name: i for i, name in enumerate(STAGES)}
+
+
+class StageTimer:
+    """Stage durations (s) for up to ``max_cycles`` cycles of one shot, in a preallocated array."""
+
+    def __init__(self, now_s: Callable[[], float], max_cycles: int) -> None:
+        self._now_s = now_s
+        self.durations_s = np.full((max_cycles, len(STAGES)), np.nan)
+        self.cycle = 0
+        self._t0 = 0.0
+
+    def reset(self) -> None:
+        self.durations_s[:] = np.nan
+        self.cycle = 0
+
+    def start(self) -> float:
+        self._t0 = self._now_s()
+        return self._t0
+
+    def lap(self, stage: str) -> float:
+        """Add the time since the last ``start``/``lap`` to ``stage`` and restart the lap.
+
+        A stage lapped several times in one cycle (e.g. the uploads of two segments) accumulates.
+        """
+        t = self._now_s()
+        self.record(stage, t - self._t0)
+        self._t0 = t
+        return t
+
+    def record(self, stage: str, duration_s: float) -> None:
+        i = _INDEX[stage]
+        previous = self.durations_s[self.cycle, i]
+        self.durations_s[self.cycle, i] = duration_s if np.isnan(previous) else previous + duration_s
+
+    def cycle_dict(self, cycle: int) -> dict[str, float]:
+        """``{stage: seconds}`` of one cycle, stages that did not run left out."""
+        row = self.durations_s[cycle]
+        return {name: float(row[i]) for i, name in enumerate(STAGES) if not np.isnan(row[i])}
+
+
+def summarize_us(samples_s: dict[str, list[float]]) -> dict[str, dict[str, float]]:
+    """``{stage: {"median_us", "p99_us", "mean_us", "max_us", "n"}}`` from lists of durations in seconds."""
+    out: dict[str, dict[str, float]] = {}
+    for stage in STAGES:
+        values = samples_s.get(stage)
+        if not values:
+            continue
+        us = np.asarray(values) * 1e6
+        out[stage] = {
+            "median_us": float(np.median(us)),
+            "p99_us": float(np.percentile(us, 99)),
+            "mean_us": float(us.mean()),
+            "max_us": float(us.max()),
+            "n": int(us.size),
+        }
+    return out

@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# Set up the project's virtual environment (once) and run it.
+#   bash scripts/dev.sh run   [llrs run arguments]   a few shots on the simulated lab
+#   bash scripts/dev.sh test  [pytest arguments]     the whole test suite
+# Needs only Python 3.11+; installs python3-venv through apt when Debian's Python lacks it.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PYTHON=${PYTHON:-python3}
+VENV=.venv
+
+ensure_venv() {
+    if [ ! -x "$VENV/bin/python" ]; then
+        if ! "$PYTHON" -c 'import ensurepip, venv' 2>/dev/null; then
+            echo "[dev.sh] $PYTHON has no venv/ensurepip; installing python3-venv with apt" >&2
+            SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+            $SUDO apt-get update -qq && $SUDO apt-get install -y -qq python3-venv >/dev/null
+        fi
+        "$PYTHON" -m venv "$VENV"
+    fi
+    # Reinstall only when pyproject.toml changed since the last install.
+    local stamp="$VENV/.installed-$(sha256sum pyproject.toml | cut -c1-16)"
+    if [ ! -f "$stamp" ]; then
+        "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
+        "$VENV/bin/python" -m pip install -q -e '.[dev]'
+        rm -f "$VENV"/.installed-*; touch "$stamp"
+    fi
+}
+
+cmd=${1:-run}; shift || true
+case "$cmd" in
+    run)
+        ensure_venv
+        if [ $# -eq 0 ]; then set -- --config examples/chain-1x64.yaml --shots 20; fi
+        exec "$VENV/bin/llrs" run "$@"
+        ;;
+    test)
+        ensure_venv
+        exec "$VENV/bin/python" -m pytest "$@"
+        ;;
+    *)
+        echo "usage: bash scripts/dev.sh {run|test} [args]" >&2; exit 2
+        ;;
+esac

@@ -1,0 +1,63 @@
+"""Configuration: examples load, bad values fail naming the field, YAML round-trips."""
+
+from pathlib import Path
+
+import pytest
+
+from engine.config import ConfigError, SystemConfig, config_from_dict, load_config, save_config
+
+EXAMPLES = sorted(Path(__file__).resolve().parents[1].joinpath("examples").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=lambda p: p.name)
+def test_examples_are_valid(path: Path) -> None:
+    config = load_config(path)
+    assert config.name == path.stem
+
+
+def test_yaml_round_trip(tmp_path: Path) -> None:
+    config = load_config(EXAMPLES[0])
+    save_config(config, tmp_path / "copy.yaml")
+    again = load_config(tmp_path / "copy.yaml")
+    assert again == config
+    assert again.digest() == config.digest()
+
+
+@pytest.mark.parametrize(
+    ("data", "field", "hint"),
+    [
+        ({"array": {"nx": 0}}, "array.nx", "greater than or equal to 1"),
+        ({"array": {"ny": 4, "trap_source": "aod"}}, "array", "ny = 1"),
+        ({"array": {"x_tones": {"spacing_hz": 1.05e6}}}, "", "multiple of"),
+        ({"waveforms": {"shape": "square"}}, "waveforms.shape", "min-jerk"),
+        ({"sim": {"loading_probability": 1.5}}, "sim.loading_probability", "less than or equal to 1"),
+        ({"target": {"count": 100}}, "", "between 1 and nx"),
+        ({"imaging": {"psf_box_px": 6}}, "imaging", "odd"),
+        ({"camera": {"roi_width_px": 100}}, "", "outside"),
+        ({"bogus": 1}, "bogus", "Extra inputs"),
+    ],
+)
+def test_bad_values_name_the_field(data: dict, field: str, hint: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        config_from_dict(data, source="test")
+    message = str(info.value)
+    assert field in message
+    assert hint in message
+
+
+def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("array: [unclosed")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
+    scalar = tmp_path / "scalar.yaml"
+    scalar.write_text("42")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(scalar)
+
+
+def test_defaults_are_valid() -> None:
+    config = SystemConfig()
+    assert config.waveforms.slot_samples == 6240

@@ -1,0 +1,272 @@
+"""The simulated EMCCD: renders the lab's atoms through the PSF with EMCCD statistics and the paper's readout
+timing, behind the same ``Camera`` protocol as the hardware.
+
+Image model, per shot (electrons unless a name says counts):
+- each occupied trap scatters Poisson(photons_per_atom * quantum_efficiency) photoelectrons spread over the
+  sensor by a pixel-integrated Gaussian PSF at the trap's sub-pixel position; split over pixels this is an
+  independent Poisson draw per pixel with mean ``N * fraction`` (Poisson thinning), which is what we draw;
+- every sensor pixel adds Poisson(background_photons_per_px * quantum_efficiency);
+- binning is on-chip: charge of a ``bx x by`` bin is summed *before* the EM register, so a binned pixel is
+  one Poisson draw of the summed mean, amplified once and read once (this is why binning helps an EMCCD);
+- EM gain: ``Gamma(shape=n, scale=em_gain)`` for ``n > 0`` electrons, else 0;
+- read noise Normal(0, read_noise_e), then ``counts = electrons / electrons_per_count + bias`` rounded and
+  clipped to the 16-bit ADC range ``[0, 65535]`` (saturation).
+
+The expensive part (one Poisson, one gain and one normal draw per pixel) runs in a numba kernel that draws
+from the caller's ``np.random.Generator``, so a seeded lab is reproducible. A 512x1024 frame takes ~25 ms.
+
+Readout timing (paper Sec. III.A, Table 1 I.2-I.4): frame transfer of ``1039`` rows, then per read-out row one
+vertical shift plus ``width + 48`` horizontal shifts (image columns, 32 dark references, 16 overscan), a
+constant ``468 + 604 + 16`` shifts through the dump/gain chain, and the DMA of the binned frame at
+``transfer_bytes_per_s``. The horizontal shift count uses the *unbinned* ROI width: the paper measures that
+horizontal binning does not change the readout time (Fig. 3d), while vertical binning halves it per doubling.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import numba
+import numpy as np
+
+from drivers.sim.clock import SimClock
+from engine.config import CameraConfig, SystemConfig
+from engine.devices import DeviceError, FrameInfo
+from engine.psf import frame_shape, pixel_fractions, trap_positions_px
+
+__all__ = ["ReadoutTime", "SimCamera", "readout_time"]
+
+FRAME_TRANSFER_ROWS = 1037 + 2  # storage section + transition rows (CCD201-20)
+ROW_EXTRA_SHIFTS = 32 + 16  # dark reference + overscan pixels shifted with every row
+READOUT_OFFSET_SHIFTS = 468 + 604 + 16  # distribution chain + multiplication chain + overscan, once per frame
+BYTES_PER_PIXEL = 2
+ADC_MAX_COUNTS = 65535
+STAMP_RADIUS_SIGMAS = 5.0  # light beyond 5 sigma (< 1e-6 of it) is not rendered
+
+FaultKind = Literal["timeout", "corrupt"]
+
+
+@dataclass(frozen=True)
+class ReadoutTime:
+    """The paper's acquisition-time model split as in Table 1 (seconds)."""
+
+    exposure_s: float
+    frame_transfer_s: float  # I.2
+    row_readout_s: float  # I.3
+    dma_s: float  # I.4 (model: binned frame bytes / transfer rate)
+
+    @property
+    def readout_s(self) -> float:
+        """Everything after the exposure until the frame is in host memory."""
+        return self.frame_transfer_s + self.row_readout_s + self.dma_s
+
+    @property
+    def total_s(self) -> float:
+        return self.exposure_s + self.readout_s
+
+
+def readout_time(camera: CameraConfig) -> ReadoutTime:
+    """Acquisition time of one frame under ``camera`` (see the module docstring for the model)."""
+    h, w = frame_shape(camera)
+    shift_s = 1.0 / camera.horizontal_rate_hz
+    return ReadoutTime(
+        exposure_s=camera.exposure_s,
+        frame_transfer_s=FRAME_TRANSFER_ROWS * camera.vertical_shift_s,
+        row_readout_s=h * (camera.vertical_shift_s + (camera.roi_width_px + ROW_EXTRA_SHIFTS) * shift_s)
+        + READOUT_OFFSET_SHIFTS * shift_s,
+        dma_s=h * w * BYTES_PER_PIXEL / camera.transfer_bytes_per_s,
+    )
+
+
+def _stamps(config: SystemConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Where each trap's light lands: binned-frame pixel indices ``int64[n, s]`` and light fractions
+    ``float64[n, s]`` over a sensor stamp of +-5 sigma (sensor pixels outside the read-out area get 0)."""
+    cam = config.camera
+    h, w = frame_shape(cam)
+    bx, by = cam.binning
+    xy = trap_positions_px(config)
+    radius = int(math.ceil(STAMP_RADIUS_SIGMAS * cam.psf_sigma_px))
+    offsets = np.arange(-radius, radius + 1)
+    xs = np.floor(xy[:, :1] + 0.5).astype(np.int64) + offsets  # sensor pixels [n, side]
+    ys = np.floor(xy[:, 1:] + 0.5).astype(np.int64) + offsets
+    fx = pixel_fractions(xy[:, :1], cam.psf_sigma_px, xs) * ((xs >= 0) & (xs < w * bx))
+    fy = pixel_fractions(xy[:, 1:], cam.psf_sigma_px, ys) * ((ys >= 0) & (ys < h * by))
+    frac = fy[:, :, None] * fx[:, None, :]
+    bin_idx = np.clip(ys // by, 0, h - 1)[:, :, None] * w + np.clip(xs // bx, 0, w - 1)[:, None, :]
+    n = xy.shape[0]
+    return bin_idx.reshape(n, -1).astype(np.int64), frac.reshape(n, -1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _expected_electrons(
+    occupied: np.ndarray,
+    stamp_idx: np.ndarray,
+    stamp_frac: np.ndarray,
+    background_e: float,
+    atom_e: float,
+    out_mean_e: np.ndarray,
+) -> None:
+    """Mean photoelectrons per binned pixel: uniform background plus every occupied trap's PSF stamp."""
+    flat = out_mean_e.reshape(out_mean_e.size)
+    flat[:] = background_e
+    occ = occupied.reshape(occupied.size)
+    for t in range(occ.size):
+        if occ[t]:
+            for k in range(stamp_idx.shape[1]):
+                flat[stamp_idx[t, k]] += atom_e * stamp_frac[t, k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _emccd_counts(
+    rng: np.random.Generator,
+    mean_e: np.ndarray,
+    em_gain: float,
+    read_noise_e: float,
+    electrons_per_count: float,
+    bias_counts: float,
+    out_counts: np.ndarray,
+) -> None:
+    """Shot noise, EM gain, read noise, ADC and saturation for every binned pixel."""
+    lam_flat = mean_e.reshape(mean_e.size)
+    out = out_counts.reshape(out_counts.size)
+    for i in range(out.size):
+        lam = lam_flat[i]
+        if lam < 10.0:  # inversion of the Poisson CDF: one uniform, fast for the dim background pixels
+            u = rng.random()
+            p = math.exp(-lam)
+            cdf = p
+            n = 0
+            while u > cdf and n < 100:
+                n += 1
+                p *= lam / n
+                cdf += p
+        else:
+            n = rng.poisson(lam)
+        if n == 0:
+            e = 0.0
+        elif n == 1:
+            e = rng.standard_exponential() * em_gain
+        else:
+            e = rng.gamma(float(n), em_gain)
+        counts = round((e + read_noise_e * rng.standard_normal()) / electrons_per_count + bias_counts)
+        out[i] = 0 if counts < 0 else (ADC_MAX_COUNTS if counts > ADC_MAX_COUNTS else counts)
+
+
+class SimCamera:
+    """A simulated EMCCD + frame grabber (implements ``engine.devices.Camera``).
+
+    ``atoms()`` is called at ``trigger()`` (the start of the exposure) and must return the static-trap
+    occupancy ``bool[ny, nx]``; the frame is rendered when it is read. Set ``fail_next_read`` to
+    ``"timeout"`` (no frame arrives) or ``"corrupt"`` (the grabber reports a torn transfer) to make the next
+    ``read`` fail with ``DeviceError``; the knob clears itself once used.
+    """
+
+    def __init__(
+        self,
+        config: SystemConfig,
+        *,
+        atoms: Callable[[], np.ndarray],
+        clock: SimClock,
+        rng: np.random.Generator,
+    ) -> None:
+        self._system = config
+        self._atoms = atoms
+        self._clock = clock
+        self._rng = rng
+        self._fail_next_read: FaultKind | None = None
+        self._frame_index = -1
+        self._t_exposure_start_s: float | None = None
+        self._occupancy = np.zeros((config.array.ny, config.array.nx), dtype=bool)
+        self.configure(config.camera)
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        return self._frame_shape
+
+    @property
+    def readout(self) -> ReadoutTime:
+        return self._readout
+
+    @property
+    def fail_next_read(self) -> FaultKind | None:
+        return self._fail_next_read
+
+    @fail_next_read.setter
+    def fail_next_read(self, kind: FaultKind | None) -> None:
+        if kind not in (None, "timeout", "corrupt"):
+            raise ValueError(f"fail_next_read must be None, 'timeout' or 'corrupt' (got {kind!r})")
+        self._fail_next_read = kind
+
+    def configure(self, config: CameraConfig) -> None:
+        """Apply new camera settings; the trap geometry must still fit the ROI (validated like a config load)."""
+        data = self._system.model_dump()
+        data["camera"] = config.model_dump()
+        self._system = SystemConfig.model_validate(data)
+        cam = self._system.camera
+        self._frame_shape = frame_shape(cam)
+        self._readout = readout_time(cam)
+        self._stamp_idx, self._stamp_frac = _stamps(self._system)
+        self._mean_e = np.empty(self._frame_shape, dtype=np.float64)
+        bx, by = cam.binning
+        self._background_e = cam.background_photons_per_px * cam.quantum_efficiency * bx * by
+        self._atom_e = cam.photons_per_atom * cam.quantum_efficiency
+        self._t_exposure_start_s = None
+
+    def trigger(self) -> None:
+        """Start an exposure now: snapshot the atoms and the time. A new trigger discards an unread frame."""
+        occupancy = np.asarray(self._atoms(), dtype=bool)
+        if occupancy.shape != self._occupancy.shape:
+            raise ValueError(f"atoms() returned shape {occupancy.shape}, expected {self._occupancy.shape}")
+        self._occupancy[...] = occupancy
+        self._t_exposure_start_s = self._clock.now_s()
+        self._frame_index += 1
+
+    def read(self, out: np.ndarray, *, timeout_s: float) -> FrameInfo:
+        """Wait (in simulated time) for the triggered frame and render it into ``out`` (``uint16[h, w]``)."""
+        if out.shape != self._frame_shape or out.dtype != np.uint16 or not out.flags.c_contiguous:
+            raise ValueError(f"out must be a C-contiguous uint16 array of shape {self._frame_shape}")
+        t0 = self._t_exposure_start_s
+        if t0 is None:
+            raise DeviceError(
+                "camera: read() with no exposure pending; call trigger() first "
+                "(on hardware: check that the AWG's camera trigger line reaches the EMCCD)"
+            )
+        self._t_exposure_start_s = None  # the frame is consumed whatever happens next
+        fault, self._fail_next_read = self._fail_next_read, None
+        t_ready_s = t0 + self._readout.total_s
+        if fault == "timeout" or t_ready_s - self._clock.now_s() > timeout_s:
+            self._clock.advance(timeout_s)
+            raise DeviceError(
+                f"camera: no frame within {timeout_s * 1e3:.1f} ms of waiting (frame {self._frame_index} needs "
+                f"{self._readout.total_s * 1e3:.2f} ms from trigger); check the trigger, exposure and timeout"
+            )
+        self._render(out)
+        self._clock.advance_to(t_ready_s)
+        if fault == "corrupt":
+            tear_row = int(self._rng.integers(0, self._frame_shape[0]))
+            out[tear_row:] = 0
+            raise DeviceError(
+                f"camera: frame {self._frame_index} arrived corrupt (the frame grabber reported an incomplete "
+                f"transfer from row {tear_row}); discard it and acquire again"
+            )
+        return FrameInfo(
+            t_exposure_start_s=t0,
+            exposure_s=self._readout.exposure_s,
+            readout_s=self._readout.readout_s,
+            frame_index=self._frame_index,
+        )
+
+    def close(self) -> None:
+        self._t_exposure_start_s = None
+
+    def _render(self, out: np.ndarray) -> None:
+        cam = self._system.camera
+        _expected_electrons(
+            self._occupancy, self._stamp_idx, self._stamp_frac, self._background_e, self._atom_e, self._mean_e
+        )
+        _emccd_counts(
+            self._rng, self._mean_e, cam.em_gain, cam.read_noise_e, cam.electrons_per_count, cam.bias_counts, out
+        )

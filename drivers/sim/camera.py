@@ -181,6 +181,7 @@ class SimCamera:
         self._t_exposure_start_s: float | None = None
         self._occupancy = np.zeros((config.array.ny, config.array.nx), dtype=bool)
         self.configure(config.camera)
+        self._warm_up()
 
     @property
     def frame_shape(self) -> tuple[int, int]:
@@ -261,6 +262,13 @@ class SimCamera:
 
     def close(self) -> None:
         self._t_exposure_start_s = None
+
+    def _warm_up(self) -> None:
+        """Compile (or load) the render kernels now, so the first read costs no compile time; a scratch
+        generator keeps the lab's random stream untouched."""
+        scratch = np.zeros((1, 1), dtype=np.float64)
+        _expected_electrons(np.zeros((1, 1), dtype=bool), np.zeros((1, 1), dtype=np.int64), scratch, 0.0, 0.0, scratch)
+        _emccd_counts(np.random.default_rng(0), scratch, 1.0, 0.0, 1.0, 0.0, np.zeros((1, 1), dtype=np.uint16))
 
     def _render(self, out: np.ndarray) -> None:
         cam = self._system.camera

@@ -70,9 +70,9 @@ def threshold_reference(counts: np.ndarray, thresholds: np.ndarray) -> np.ndarra
 
 def model_threshold(config: SystemConfig, psf: PsfModel, *, fraction_filled: float = 0.5) -> np.ndarray:
     """Per-trap thresholds from the camera model: the minimum-error point between the predicted empty and
-    filled weighted-sum distributions (Gaussian approximations, EMCCD excess noise included)."""
-    m0, s0, m1, s1 = model_sum_statistics(config.camera, psf)
-    return min_error_threshold(m0, s0, m1, s1, fraction_filled)
+    filled weighted-sum distributions (moment-matched shifted gammas, EMCCD statistics included)."""
+    empty, atom = model_sum_statistics(config.camera, psf)
+    return min_error_threshold(empty, atom, fraction_filled)
 
 
 class Detector:

@@ -50,9 +50,14 @@ def fade_in(k: int) -> Tone:
 
 def chain_shift(n: int, movers: list[int], d: int) -> list[Tone]:
     """A chain slot: tones at ``movers`` shift by ``d``; entered sites fade out, vacated sites fade in."""
-    src = set(movers)
-    dst = {k + d for k in movers}
-    tones = [move(k, d) for k in movers]
+    return chain_moves(n, {k: d for k in movers})
+
+
+def chain_moves(n: int, deltas: dict[int, int]) -> list[Tone]:
+    """A chain slot where the tone at site k moves by ``deltas[k]`` (blocks may move different ways)."""
+    src = set(deltas)
+    dst = {k + d for k, d in deltas.items()}
+    tones = [move(k, d) for k, d in deltas.items()]
     for k in range(n):
         if k in dst and k not in src:
             tones.append(fade_out(k))

@@ -247,6 +247,12 @@ class SampleDecoder:
         )
         self._proj = [a.projector(self.sample_rate_hz, w) for a in axes]
         self._gather = self.window_offsets[:, None] + np.arange(w, dtype=np.int64)[None, :]  # [W, L]
+        # compile (or load from cache) the classifier now, not during the first playback
+        q = self._axes[0].grid_hz.size
+        _classify(
+            np.zeros((1, len(WINDOW_CENTRES), q), np.float32), self._axes[0].n_sites, MOVER_FRACTION,
+            REPORT_FRACTION, np.zeros((1, 2 * self._axes[0].n_sites, 4), np.float32), np.zeros(1, np.int32),
+        )
 
     @property
     def n_axes(self) -> int:

@@ -1,0 +1,427 @@
+"""A simulated sequence-mode AWG (Spectrum M4i style) that plays in simulated time and moves the world's atoms.
+
+Sequence memory: segments of ``int16[n, n_channels]`` samples and steps ``(segment, next_step, loops,
+on_trigger)``. A step plays its segment ``loops`` times (then, if ``on_trigger``, keeps repeating it until a
+trigger has arrived since the step was entered), then goes to ``next_step`` *as the step table reads at the
+moment the step ends*. A step whose next is itself loops forever. Underruns are not special-cased: they fall
+out of the step table exactly as on the card.
+
+Playback is lazy: whenever a method is called (or ``sync()``), playback is advanced to the clock's now. Each
+pass of a segment is decoded from its samples (``drivers/sim/decode.py``; the data that was in the segment when
+the pass started) and applied to the world slot by slot, at the time each slot ends; vacuum loss runs on the
+same clock. A segment that changes nothing (every tone steady) is applied once per visit, and self-loops over
+it are fast-forwarded in O(1), so seconds of idle cost nothing.
+
+Memory writes cost device time on the clock (``clock.advance``): an upload ``nbytes / upload_bytes_per_s +
+|N(0, upload_jitter_s)|`` (+ the ``upload_delay_s`` fault knob), a step write ``step_write_s``. A write takes
+effect when it completes; playback before that sees the old contents. Samples are decoded during the upload
+and the wall time that takes is charged against the modelled upload time, so the simulator's own work does
+not make the host look late (if decoding takes longer than the modelled upload, the upload takes that long).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.sim.decode import DecodedSegment, SampleDecoder
+from drivers.sim.world import World
+from engine.config import AWGConfig, SystemConfig
+from engine.devices import Clock, DeviceError, StepInfo
+
+__all__ = ["PlayRecord", "SimAWG"]
+
+
+@dataclass
+class PlayRecord:
+    """One visit of playback to a step: ``repeats`` passes of ``segment`` from ``t_start_s``."""
+
+    step: int
+    segment: int
+    t_start_s: float
+    repeats: int = 1
+
+
+class _Segment:
+    """One version of a segment's contents; decoded lazily, once."""
+
+    __slots__ = ("data", "decoded", "t_begin_s", "t_ready_s")
+
+    def __init__(self, data: np.ndarray, t_begin_s: float, t_ready_s: float) -> None:
+        self.data = data
+        self.decoded: DecodedSegment | None = None
+        self.t_begin_s = t_begin_s
+        self.t_ready_s = t_ready_s
+
+
+class SimAWG:
+    """Implements ``engine.devices.SequenceAWG`` against a simulated ``World`` and ``Clock``.
+
+    Fault knobs (python-microscope style; set them as attributes): ``fail_next_upload`` (the next
+    ``write_segment`` raises ``DeviceError`` without writing), ``upload_delay_s`` (extra time added to every
+    upload), ``step_write_delay_s`` (extra time added to every step write).
+    """
+
+    def __init__(
+        self,
+        world: World,
+        clock: Clock,
+        config: SystemConfig,
+        *,
+        rng: np.random.Generator | None = None,
+        full_scale: float = 32767.0,
+    ) -> None:
+        self.world = world
+        self.clock = clock
+        self.system = config
+        self.full_scale = full_scale
+        seed = config.sim.seed
+        self.rng = rng if rng is not None else np.random.default_rng(None if seed is None else seed + 7919)
+        self.fail_next_upload = False
+        self.upload_delay_s = 0.0
+        self.step_write_delay_s = 0.0
+        self.uploads = 0
+        self.bytes_uploaded = 0
+        self.torn_plays = 0  # passes that started while their segment was being uploaded
+        self.pulses: list[tuple[str, float]] = []
+        self._lock = threading.RLock()
+        n_ch = 1 if config.array.trap_source == "aod" else 2
+        self.configure(config.awg, n_channels=n_ch, sample_rate_hz=config.waveforms.sample_rate_hz)
+
+    # --- protocol: properties and setup ----------------------------------------------------------------
+
+    @property
+    def n_channels(self) -> int:
+        return self._n_channels
+
+    @property
+    def sample_rate_hz(self) -> float:
+        return self._sample_rate_hz
+
+    def configure(self, config: AWGConfig, *, n_channels: int, sample_rate_hz: float) -> None:
+        """Reset the card: clear sequence memory and stop playback."""
+        with self._lock:
+            try:
+                decoder = SampleDecoder(
+                    self.system, sample_rate_hz=sample_rate_hz, n_channels=n_channels, full_scale=self.full_scale
+                )
+            except ValueError as err:
+                raise DeviceError(f"sim AWG: cannot configure: {err}") from None
+            self.awg_config = config
+            self._n_channels = int(n_channels)
+            self._sample_rate_hz = float(sample_rate_hz)
+            self.decoder = decoder
+            self._segments: list[_Segment | None] = [None] * config.n_segments
+            self._steps: list[StepInfo | None] = [None] * config.n_steps
+            self._pending: list[tuple[float, int, int, object]] = []  # (t_effective, kind 0=seg 1=step, index, value)
+            self._log: list[PlayRecord] = []
+            self._running = False
+            self._pass_segment = -1
+            self._fault: str | None = None
+            self._last_trigger_s: float | None = None
+
+    def set_system_config(self, config: SystemConfig) -> None:
+        """Adopt a new system configuration (array, tones, waveforms) and reconfigure the card."""
+        with self._lock:
+            self.system = config
+            n_ch = 1 if config.array.trap_source == "aod" else 2
+            self.configure(config.awg, n_channels=n_ch, sample_rate_hz=config.waveforms.sample_rate_hz)
+
+    # --- protocol: memory writes -----------------------------------------------------------------------
+
+    def write_segment(self, index: int, samples: np.ndarray) -> None:
+        with self._lock:
+            self._sync()
+            if not 0 <= index < len(self._segments):
+                raise DeviceError(f"sim AWG: segment index {index} out of range 0..{len(self._segments) - 1}")
+            if not isinstance(samples, np.ndarray) or samples.dtype != np.int16:
+                dtype = getattr(samples, "dtype", type(samples).__name__)
+                raise DeviceError(f"sim AWG: segment {index}: samples must be int16, got {dtype}")
+            if samples.ndim != 2 or samples.shape[1] != self._n_channels or samples.shape[0] == 0:
+                raise DeviceError(
+                    f"sim AWG: segment {index}: samples must be int16[n > 0, {self._n_channels}], got shape {samples.shape}"
+                )
+            if self._running and self._pass_segment == index:
+                raise DeviceError(f"sim AWG: segment {index} is playing right now (step {self._step}); it cannot be written")
+            used = sum(s.data.nbytes for i, s in enumerate(self._latest_segments()) if s is not None and i != index)
+            if used + samples.nbytes > self.awg_config.max_memory_bytes:
+                raise DeviceError(
+                    f"sim AWG: segment {index} ({samples.nbytes} B) does not fit: {used} B of "
+                    f"{self.awg_config.max_memory_bytes} B already used"
+                )
+            if self.fail_next_upload:
+                self.fail_next_upload = False
+                raise DeviceError(f"sim AWG: injected upload failure (segment {index})")
+            t_begin = self.clock.now_s()
+            wall0 = time.perf_counter()
+            seg = _Segment(samples.copy(), t_begin, t_begin)
+            self._decoded(seg)  # decode now, inside the modelled upload time, not later during playback
+            spent = time.perf_counter() - wall0
+            cost = (
+                samples.nbytes / self.awg_config.upload_bytes_per_s
+                + abs(float(self.rng.normal(0.0, self.awg_config.upload_jitter_s)))
+                + self.upload_delay_s
+            )
+            # the simulator's own decoding time already passed on the clock; charge only the rest
+            self.clock.advance(cost - spent)
+            seg.t_ready_s = t_begin + max(cost, spent)
+            self._pending.append((seg.t_ready_s, 0, index, seg))
+            data = seg.data
+            self.uploads += 1
+            self.bytes_uploaded += data.nbytes
+
+    def write_step(self, index: int, step: StepInfo) -> None:
+        with self._lock:
+            self._sync()
+            n_steps, n_seg = len(self._steps), len(self._segments)
+            if not 0 <= index < n_steps:
+                raise DeviceError(f"sim AWG: step index {index} out of range 0..{n_steps - 1}")
+            if not 0 <= step.segment < n_seg:
+                raise DeviceError(f"sim AWG: step {index}: segment {step.segment} out of range 0..{n_seg - 1}")
+            if not 0 <= step.next_step < n_steps:
+                raise DeviceError(f"sim AWG: step {index}: next_step {step.next_step} out of range 0..{n_steps - 1}")
+            if step.loops < 1:
+                raise DeviceError(f"sim AWG: step {index}: loops must be >= 1, got {step.loops}")
+            cost = self.awg_config.step_write_s + self.step_write_delay_s
+            t_eff = self.clock.now_s() + cost
+            self.clock.advance(cost)
+            self._pending.append((t_eff, 1, index, step))
+
+    # --- protocol: playback ----------------------------------------------------------------------------
+
+    def start(self, entry_step: int) -> None:
+        with self._lock:
+            self._sync()
+            self._commit_pending(math.inf)  # the card starts from memory as written
+            if not 0 <= entry_step < len(self._steps) or self._steps[entry_step] is None:
+                raise DeviceError(f"sim AWG: cannot start at step {entry_step}: it was never written")
+            now = self.clock.now_s()
+            self._running = True
+            self._fault = None
+            self._enter(entry_step, now)
+
+    def stop(self) -> None:
+        with self._lock:
+            if self._running:
+                self._sync()
+            self._running = False
+
+    def current_step(self) -> int:
+        """The step playing now, or -1 when stopped."""
+        with self._lock:
+            self._sync()
+            return self._step if self._running else -1
+
+    def wait_for_step(self, step: int, *, timeout_s: float) -> None:
+        with self._lock:
+            self._sync()
+            if not self._running:
+                raise DeviceError(f"sim AWG: waiting for step {step} but playback is stopped")
+            if self._step == step:
+                return
+            now = self.clock.now_s()
+            t_hit = self._advance(now + timeout_s, stop_at_step=step)
+            if t_hit is None:
+                self.clock.advance_to(now + timeout_s)
+                self._raise_fault()
+                raise DeviceError(
+                    f"sim AWG: step {step} not reached within {timeout_s:g} s (playing step {self._step}); "
+                    "check the step table's next pointers"
+                )
+            self.clock.advance_to(t_hit)
+            self._raise_fault()
+
+    def pulse(self, line: str) -> None:
+        """Record a pulse on an async output line ('camera' or 'resume') at the current time."""
+        with self._lock:
+            if line not in ("camera", "resume"):
+                raise DeviceError(f"sim AWG: unknown pulse line {line!r}; use 'camera' or 'resume'")
+            self._sync()
+            self.pulses.append((line, self.clock.now_s()))
+
+    def force_trigger(self) -> None:
+        """A trigger event now: an ``on_trigger`` step that is waiting ends its loop after the current pass."""
+        with self._lock:
+            self._sync()
+            self._last_trigger_s = self.clock.now_s()
+
+    def sync(self) -> None:
+        """Bring playback and the world up to the clock's now."""
+        with self._lock:
+            self._sync()
+
+    # --- inspection ------------------------------------------------------------------------------------
+
+    def played_steps(self) -> list[PlayRecord]:
+        """Every step visit so far (after syncing), oldest first."""
+        with self._lock:
+            self._sync()
+            return list(self._log)
+
+    def count_plays(self, step_indices: Iterable[int]) -> int:
+        """How many visits were to any of ``step_indices`` (e.g. the failsafe steps: the underrun count)."""
+        wanted = set(step_indices)
+        return sum(1 for rec in self.played_steps() if rec.step in wanted)
+
+    def clear_log(self) -> None:
+        with self._lock:
+            self._sync()
+            self._log = self._log[-1:] if self._running else []
+
+    def segment_samples(self, index: int) -> np.ndarray | None:
+        """The samples in segment ``index`` as the card holds them now (read-only)."""
+        with self._lock:
+            self._sync()
+            seg = self._segments[index]
+            if seg is None:
+                return None
+            view = seg.data.view()
+            view.flags.writeable = False
+            return view
+
+    # --- internals -------------------------------------------------------------------------------------
+
+    def _latest_segments(self) -> list[_Segment | None]:
+        latest = list(self._segments)
+        for _, kind, index, value in self._pending:
+            if kind == 0:
+                latest[index] = value  # type: ignore[assignment]
+        return latest
+
+    def _raise_fault(self) -> None:
+        if self._fault is not None:
+            msg = self._fault
+            self._fault = None
+            raise DeviceError(msg)
+
+    def _sync(self) -> None:
+        now = self.clock.now_s()
+        if self._running:
+            self._advance(now)
+            self._raise_fault()
+        else:
+            self._commit_pending(now)
+        self.world.elapse_to(now)
+
+    def _commit_pending(self, t_s: float) -> None:
+        """Apply memory writes that have taken effect by ``t_s`` (they are in time order)."""
+        n = 0
+        for t_eff, kind, index, value in self._pending:
+            if t_eff > t_s:
+                break
+            if kind == 0:
+                self._segments[index] = value  # type: ignore[assignment]
+            else:
+                self._steps[index] = value  # type: ignore[assignment]
+            n += 1
+        if n:
+            del self._pending[:n]
+
+    def _decoded(self, seg: _Segment) -> DecodedSegment:
+        if seg.decoded is None:
+            seg.decoded = self.decoder.decode(seg.data)
+        return seg.decoded
+
+    def _enter(self, step: int, t_s: float) -> None:
+        """Begin a visit to ``step`` at ``t_s``."""
+        self._step = step
+        self._visit_t0 = t_s
+        self._log.append(PlayRecord(step=step, segment=-1, t_start_s=t_s, repeats=0))
+        self._begin_pass(t_s, first=True)
+
+    def _begin_pass(self, t_s: float, *, first: bool) -> None:
+        info = self._steps[self._step]
+        if info is None:
+            self._fault = f"sim AWG: playback reached step {self._step}, which was never written; stopped"
+            self._running = False
+            return
+        seg = self._segments[info.segment]
+        if seg is None:
+            self._fault = f"sim AWG: step {self._step} plays segment {info.segment}, which holds no data; stopped"
+            self._running = False
+            return
+        for t_eff, kind, index, value in self._pending:
+            if kind == 0 and index == info.segment and value.t_begin_s <= t_s < t_eff:  # type: ignore[attr-defined]
+                self.torn_plays += 1
+        rec = self._log[-1]
+        rec.segment = info.segment
+        rec.repeats += 1
+        self._pass_t0 = t_s
+        self._pass_seg = seg
+        self._pass_segment = info.segment
+        self._pass_index = 1 if first else self._pass_index + 1
+        dec = self._decoded(seg)
+        # a steady segment changes nothing on a repeat: mark its slots as applied
+        self._slot_done = dec.n_slots if (dec.stationary and not first) else 0
+
+    def _pass_duration(self) -> float:
+        return self._pass_seg.data.shape[0] / self._sample_rate_hz
+
+    def _apply_slots(self, t_until: float) -> None:
+        dec = self._decoded(self._pass_seg)
+        slot_s = self.decoder.slot_s
+        while self._slot_done < dec.n_slots:
+            i = self._slot_done
+            t_end = self._pass_t0 + (i + 1) * slot_s
+            if t_end > t_until:
+                return
+            self.world.elapse_to(self._pass_t0 + i * slot_s)
+            self.world.apply_slot(*dec.slot(i))
+            self._slot_done = i + 1
+
+    def _advance(self, t_until: float, stop_at_step: int | None = None) -> float | None:
+        """Play until ``t_until``; with ``stop_at_step``, stop when that step is entered and return the time."""
+        while self._running:
+            dur = self._pass_duration()
+            t_end = self._pass_t0 + dur
+            self._apply_slots(min(t_until, t_end))
+            if t_end > t_until:
+                return None
+            self._commit_pending(t_end)
+            info = self._steps[self._step]
+            assert info is not None
+            repeat = self._pass_index < info.loops
+            if not repeat and info.on_trigger:
+                trig = self._last_trigger_s
+                if trig is not None and self._visit_t0 <= trig <= t_end:
+                    self._last_trigger_s = None
+                else:
+                    repeat = True
+            if repeat or info.next_step == self._step:
+                self._fast_forward(t_end, t_until, dur)
+                if not self._running:
+                    return None
+                continue
+            self._enter(info.next_step, t_end)
+            if stop_at_step is not None and info.next_step == stop_at_step and self._running:
+                return t_end
+        return None
+
+    def _fast_forward(self, t_end: float, t_until: float, dur: float) -> None:
+        """Start the next pass of the same step at ``t_end``, skipping whole steady passes up to the horizon."""
+        info = self._steps[self._step]
+        assert info is not None
+        seg = self._segments[info.segment]
+        skip = 0
+        steady_loop = info.next_step == self._step or info.on_trigger
+        if seg is self._pass_seg and seg is not None and self._decoded(seg).stationary and steady_loop and dur > 0:
+            horizon = t_until
+            if self._pending:
+                horizon = min(horizon, self._pending[0][0])
+            if info.next_step != self._step:
+                # a trigger wait: only while the loop count is spent and no trigger is latched for this visit
+                trig = self._last_trigger_s
+                latched = trig is not None and self._visit_t0 <= trig
+                if self._pass_index < info.loops or latched:
+                    horizon = t_end
+            skip = max(0, int((horizon - t_end) // dur) - 1)
+        if skip:
+            self._log[-1].repeats += skip
+            self._pass_index += skip
+            t_end += skip * dur
+        self._begin_pass(t_end, first=False)

@@ -1,0 +1,244 @@
+"""The FastAPI app: REST commands and queries for a lab sequencer, live cycles over a websocket.
+
+Every route is a thin adapter over ``LabService``; blocking engine calls are plain ``def`` routes, which FastAPI
+runs in its thread pool, so the event loop (and the live websockets) never waits for a shot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import html
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Annotated, Any
+
+from fastapi import Body, Depends, FastAPI, HTTPException, Path, Query, Request, WebSocket
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import HTMLResponse, Response
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from engine.config import SystemConfig
+from server.hub import LiveHub, cycle_messages
+from server.models import ErrorOut, RunStateOut, ShotList, ShotOut, ShotRequest, StatusOut, shot_out, shot_summary
+from server.png import encode_png
+from server.service import ConfigRejected, LabService
+
+__all__ = ["create_app"]
+
+_bearer = HTTPBearer(auto_error=False, description="required on mutating routes when LLRS_TOKEN is set")
+
+_ERR = {"model": ErrorOut}
+_BODY_ERRORS: dict[int | str, dict[str, Any]] = {
+    400: {**_ERR, "description": "malformed request body"},
+    401: {**_ERR, "description": "missing or wrong bearer token (only when LLRS_TOKEN is set)"},
+    422: {**_ERR, "description": "invalid input: `detail` names each field and why; nothing was changed"},
+}
+_AUTH_ERRORS: dict[int | str, dict[str, Any]] = {401: _BODY_ERRORS[401]}
+_NOT_FOUND: dict[int | str, dict[str, Any]] = {
+    404: {**_ERR, "description": "no such shot held by the server"},
+    422: {**_ERR, "description": "invalid path or query parameter"},
+}
+
+
+def create_app(
+    *,
+    service: LabService,
+    token: str | None = None,
+    cors_origins: tuple[str, ...] = (),
+    dashboard_port: int | None = None,
+    live_queue: int = 64,
+) -> FastAPI:
+    """Build the app around a started ``service``.
+
+    ``token``: when set, mutating routes need ``Authorization: Bearer <token>``. ``cors_origins``: browsers on
+    these origins may call the API (none by default: CORS stays closed). ``dashboard_port``: where ``GET /``
+    links the viser dashboard.
+    """
+    hub = LiveHub(maxsize=live_queue)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        hub.bind(asyncio.get_running_loop())
+        service.add_listener(hub.publish_record)
+        try:
+            yield
+        finally:
+            service.remove_listener(hub.publish_record)
+            hub.bind(None)
+
+    app = FastAPI(
+        title="LLRS lab server",
+        version="0.1.0",
+        summary="Low-latency reconfiguration of optical-tweezer arrays: run shots, change the configuration, "
+        "read the history, watch live cycles (websocket /api/live).",
+        lifespan=lifespan,
+    )
+    app.state.service = service
+    app.state.hub = hub
+    if cors_origins:
+        app.add_middleware(
+            CORSMiddleware, allow_origins=list(cors_origins), allow_methods=["*"], allow_headers=["*"]
+        )
+
+    def require_token(
+        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+    ) -> None:
+        if token is None:
+            return
+        if credentials is None or not hmac.compare_digest(credentials.credentials.encode(), token.encode()):
+            raise HTTPException(401, detail="missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
+
+    auth = [Depends(require_token)]
+
+    def rejected(err: ConfigRejected) -> HTTPException:
+        return HTTPException(422, detail=err.errors)
+
+    @app.get("/", response_class=HTMLResponse, summary="Links to the dashboard, the API docs and the status")
+    def index(request: Request) -> str:
+        host = request.url.hostname or "127.0.0.1"
+        dash = (
+            f'<li><a id="dashboard" href="http://{html.escape(host)}:{dashboard_port}/">dashboard</a> '
+            "(live atom map, timings, controls)</li>"
+            if dashboard_port
+            else "<li>dashboard: not running</li>"
+        )
+        return (
+            "<!doctype html><html><head><meta charset='utf-8'><title>LLRS lab server</title></head><body>"
+            f"<h1>LLRS lab server</h1><ul>{dash}<li><a href='/docs'>API docs</a> "
+            "(<a href='/openapi.json'>openapi.json</a>)</li><li><a href='/api/status'>status</a></li>"
+            "<li>live cycles: websocket <code>/api/live</code></li></ul></body></html>"
+        )
+
+    @app.get("/api/status", response_model=StatusOut, summary="Engine state, devices, shots done, last shot")
+    def status() -> StatusOut:
+        return service.status()
+
+    @app.get("/api/config", response_model=SystemConfig, summary="The running configuration")
+    def get_config() -> SystemConfig:
+        return service.config
+
+    @app.put(
+        "/api/config",
+        response_model=SystemConfig,
+        dependencies=auth,
+        responses=_BODY_ERRORS,
+        summary="Replace the whole configuration (validated; applied between shots)",
+    )
+    def put_config(config: SystemConfig) -> SystemConfig:
+        try:
+            return service.replace_config(config)
+        except ConfigRejected as err:
+            raise rejected(err) from None
+
+    @app.patch(
+        "/api/config",
+        response_model=SystemConfig,
+        dependencies=auth,
+        responses=_BODY_ERRORS,
+        summary="Change part of the configuration (deep-merged, then validated; applied between shots)",
+    )
+    def patch_config(
+        patch: Annotated[
+            dict[str, Any],
+            Body(examples=[{"sim": {"loading_probability": 0.5}, "loop": {"max_cycles": 4}}]),
+        ],
+    ) -> SystemConfig:
+        try:
+            return service.patch_config(patch)
+        except ConfigRejected as err:
+            raise rejected(err) from None
+
+    @app.post(
+        "/api/run",
+        response_model=RunStateOut,
+        dependencies=auth,
+        responses=_AUTH_ERRORS,
+        summary="Run shots continuously (with a pause between them)",
+    )
+    def run() -> RunStateOut:
+        service.run()
+        return RunStateOut(running=service.running, pause_s=service.pause_s)
+
+    @app.post(
+        "/api/stop",
+        response_model=RunStateOut,
+        dependencies=auth,
+        responses=_AUTH_ERRORS,
+        summary="Stop continuous shots after the one in progress",
+    )
+    def stop() -> RunStateOut:
+        service.stop()
+        return RunStateOut(running=service.running, pause_s=service.pause_s)
+
+    @app.post(
+        "/api/shots",
+        response_model=ShotOut,
+        dependencies=auth,
+        responses=_BODY_ERRORS,
+        summary="Run one shot now and return its record (optionally with a config override for this shot only)",
+    )
+    def post_shot(request: Annotated[ShotRequest | None, Body()] = None) -> ShotOut:
+        try:
+            record = service.shot(override=request.config if request is not None else None)
+        except ConfigRejected as err:
+            raise rejected(err) from None
+        return shot_out(record)
+
+    @app.get("/api/shots", response_model=ShotList, responses=_NOT_FOUND, summary="Past shots, newest first")
+    def list_shots(
+        limit: Annotated[int, Query(ge=1, le=1000)] = 50,
+        offset: Annotated[int, Query(ge=0)] = 0,
+    ) -> ShotList:
+        total, records = service.shots(limit=limit, offset=offset)
+        return ShotList(total=total, offset=offset, limit=limit, shots=[shot_summary(r) for r in records])
+
+    @app.get("/api/shots/{shot_id}", response_model=ShotOut, responses=_NOT_FOUND, summary="One shot's record")
+    def get_shot(shot_id: int) -> ShotOut:
+        record = service.get_shot(shot_id)
+        if record is None:
+            raise HTTPException(404, detail=f"shot {shot_id} is not held by the server")
+        return shot_out(record)
+
+    @app.get(
+        "/api/shots/{shot_id}/image/{cycle}",
+        response_class=Response,
+        responses={
+            200: {"content": {"image/png": {}}, "description": "the camera frame (16-bit grayscale PNG, raw counts)"},
+            404: {**_ERR, "description": "no such shot, or no image kept for that cycle"},
+            422: _NOT_FOUND[422],
+        },
+        summary="A cycle's camera frame as PNG (only when images were kept)",
+    )
+    def get_image(shot_id: int, cycle: Annotated[int, Path(ge=0)]) -> Response:
+        record = service.get_shot(shot_id)
+        if record is None:
+            raise HTTPException(404, detail=f"shot {shot_id} is not held by the server")
+        images = record.images or []
+        if cycle >= len(images):
+            raise HTTPException(404, detail=f"shot {shot_id} kept no image for cycle {cycle} ({len(images)} kept)")
+        return Response(content=encode_png(images[cycle]), media_type="image/png")
+
+    @app.websocket("/api/live")
+    async def live(ws: WebSocket) -> None:
+        """Per-cycle JSON messages (``server.models.LiveCycle``): the last shot at once, then every new one."""
+        await ws.accept()
+        queue = hub.subscribe()
+        last = service.last_record()
+        if last is not None:
+            for message in cycle_messages(last)[-queue.maxsize :]:
+                queue.put_nowait(message)
+
+        async def pump() -> None:
+            while True:
+                await ws.send_json(await queue.get())
+
+        sender = asyncio.create_task(pump())
+        try:
+            while (await ws.receive())["type"] != "websocket.disconnect":
+                pass
+        finally:
+            sender.cancel()
+            hub.unsubscribe(queue)
+
+    return app

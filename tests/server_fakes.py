@@ -1,0 +1,108 @@
+"""A stand-in engine for the server tests: the real ``EngineThread`` around an engine that fakes shots in microseconds.
+
+The server's contract with the engine is small (``config``, ``apply``, ``run_shot``, ``devices.close``); faking
+it keeps the API tests fast and lets them provoke what the simulated lab rarely does (a refused config, a fault,
+kept images, a slow shot).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from engine.config import SystemConfig, load_config
+from engine.records import CycleRecord, Outcome, ShotRecord
+from engine.targets import build_target
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chain-1x64.yaml"
+
+
+def example_config() -> SystemConfig:
+    return load_config(EXAMPLE)
+
+
+class _Devices:
+    def __init__(self) -> None:
+        self.closed = False
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class FakeEngine:
+    """Loads atoms at ``sim.loading_probability`` and fills the target in one rearrangement when it can.
+
+    ``shot_s``: how long a shot takes (to provoke overlap). ``keep_images``: attach a frame per cycle.
+    ``fault``: the next shot faults with this message. An algorithm named ``refuse`` makes ``apply`` raise,
+    as the real engine does for a solver it does not know.
+    """
+
+    def __init__(self, config: SystemConfig, *, shot_s: float = 0.0, keep_images: bool = False) -> None:
+        self.devices = _Devices()
+        self.shots_done = 0
+        self.shot_s = shot_s
+        self.keep_images = keep_images
+        self.fault: str | None = None
+        self.applied: list[SystemConfig] = []
+        self.in_shot = 0
+        self.max_in_shot = 0
+        self._guard = threading.Lock()
+        self.apply(config)
+
+    def apply(self, config: SystemConfig) -> None:
+        if config.solver.algorithm == "refuse":
+            raise ValueError("unknown solver algorithm 'refuse'")
+        self.config = config
+        self.target = build_target(config.target, nx=config.array.nx, ny=config.array.ny)
+        self.rng = np.random.default_rng(config.sim.seed)
+        self.applied.append(config)
+
+    def run_shot(self, shot_id: int | None = None) -> ShotRecord:
+        with self._guard:
+            self.in_shot += 1
+            self.max_in_shot = max(self.max_in_shot, self.in_shot)
+        try:
+            time.sleep(self.shot_s)
+            return self._shot()
+        finally:
+            with self._guard:
+                self.in_shot -= 1
+
+    def _shot(self) -> ShotRecord:
+        cfg = self.config
+        record = ShotRecord(
+            shot_id=self.shots_done, config_digest=cfg.digest(), algorithm=cfg.solver.algorithm, target=self.target
+        )
+        loaded = self.rng.random(self.target.shape) < cfg.sim.loading_probability
+        states = [loaded]
+        if self.fault is not None:
+            record.outcome, record.fault, self.fault = Outcome.FAULT, self.fault, None
+        elif loaded.sum() < self.target.sum():
+            record.outcome = Outcome.UNSOLVABLE
+        elif not np.all(loaded[self.target]):
+            states.append(self.target.copy())
+            record.outcome = Outcome.SUCCESS
+        else:
+            record.outcome = Outcome.SUCCESS
+        for i, occ in enumerate(states):
+            rearranges = i < len(states) - 1
+            record.cycles.append(
+                CycleRecord(
+                    index=i,
+                    occupancy=occ,
+                    atoms=int(occ.sum()),
+                    defects=int((self.target & ~occ).sum()),
+                    stage_s={"I.acquire": 30e-3, "II.detect": 20e-6, "III.solve": 5e-6 if rearranges else 0.0},
+                    n_slots=3 if rearranges else 0,
+                    n_steps=1 if rearranges else 0,
+                )
+            )
+        if self.keep_images:
+            record.images = [np.full((16, 64), 500 + 100 * i, dtype=np.uint16) for i in range(len(states))]
+        record.truth = {"target_filled": record.outcome is Outcome.SUCCESS}
+        record.duration_s = 0.05
+        self.shots_done += 1
+        return record

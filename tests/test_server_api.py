@@ -1,0 +1,320 @@
+"""The REST API and the live websocket, through HTTP (FastAPI's TestClient), on the stand-in engine."""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+import threading
+import time
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from engine.engine import EngineThread
+from server.app import create_app
+from server.hub import LiveHub
+from server.runstore import RunStore
+from server.service import LabService
+from server_fakes import FakeEngine, example_config
+
+
+def make_service(tmp_path: Path, **engine_kw: object) -> tuple[LabService, FakeEngine]:
+    holder: list[FakeEngine] = []
+
+    def build() -> FakeEngine:
+        holder.append(FakeEngine(example_config(), **engine_kw))
+        return holder[0]
+
+    service = LabService(
+        engine_thread=EngineThread(build),  # type: ignore[arg-type]
+        store=RunStore(tmp_path / "runs"),
+        pause_s=0.005,
+    ).start()
+    return service, holder[0]
+
+
+@pytest.fixture
+def lab(tmp_path: Path) -> Iterator[tuple[LabService, FakeEngine]]:
+    service, engine = make_service(tmp_path, keep_images=True)
+    yield service, engine
+    service.close()
+
+
+@pytest.fixture
+def client(lab: tuple[LabService, FakeEngine]) -> Iterator[TestClient]:
+    with TestClient(create_app(service=lab[0], dashboard_port=8080)) as c:
+        yield c
+
+
+def test_index_links_dashboard_and_docs(client: TestClient) -> None:
+    r = client.get("/")
+    assert r.status_code == 200
+    assert 'href="http://testserver:8080/"' in r.text and "/docs" in r.text
+    assert client.get("/openapi.json").json()["info"]["title"] == "LLRS lab server"
+
+
+def test_status_idle_then_after_a_shot(client: TestClient) -> None:
+    s = client.get("/api/status").json()
+    assert s["state"] == "idle" and s["shots_done"] == 0 and s["last_shot"] is None
+    assert s["devices"] == {"camera": "sim", "awg": "sim", "time": "simulated"}
+    shot = client.post("/api/shots").json()
+    s = client.get("/api/status").json()
+    assert s["shots_done"] == 1 and s["last_shot"]["shot_id"] == shot["shot_id"]
+    assert s["success_rate"] == (1.0 if shot["outcome"] == "success" else 0.0)
+
+
+def test_post_shot_returns_record_and_is_listed(client: TestClient) -> None:
+    shot = client.post("/api/shots").json()
+    assert shot["target"] == ["0" * 16 + "1" * 32 + "0" * 16]
+    assert shot["cycles"][0]["occupancy"][0].count("1") == shot["atoms_loaded"]
+    listed = client.get("/api/shots").json()
+    assert listed["total"] == 1 and listed["shots"][0]["shot_id"] == shot["shot_id"]
+    assert client.get(f"/api/shots/{shot['shot_id']}").json() == shot
+
+
+def test_list_shots_paginates_newest_first(client: TestClient) -> None:
+    ids = [client.post("/api/shots").json()["shot_id"] for _ in range(5)]
+    page = client.get("/api/shots", params={"limit": 2, "offset": 1}).json()
+    assert page["total"] == 5 and [s["shot_id"] for s in page["shots"]] == ids[::-1][1:3]
+    assert client.get("/api/shots", params={"limit": 0}).status_code == 422
+    assert client.get("/api/shots", params={"offset": -1}).status_code == 422
+
+
+def test_unknown_shot_and_image_are_404(client: TestClient) -> None:
+    assert client.get("/api/shots/12345").status_code == 404
+    assert client.get("/api/shots/12345/image/0").status_code == 404
+    shot = client.post("/api/shots").json()
+    assert client.get(f"/api/shots/{shot['shot_id']}/image/99").status_code == 404
+    assert client.get(f"/api/shots/{shot['shot_id']}/image/-1").status_code == 422
+
+
+def _png_pixels(data: bytes) -> np.ndarray:
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    w, h, depth = struct.unpack(">IIB", data[16:25])
+    idat = data[data.index(b"IDAT") + 4 :]
+    raw = np.frombuffer(zlib.decompress(idat[: idat.index(b"IEND") - 8]), dtype=np.uint8).reshape(h, -1)
+    assert depth == 16 and (raw[:, 0] == 0).all()
+    return raw[:, 1:].copy().view(">u2").reshape(h, w)
+
+
+def test_image_is_lossless_png(client: TestClient) -> None:
+    shot = client.post("/api/shots").json()
+    r = client.get(f"/api/shots/{shot['shot_id']}/image/0")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    pixels = _png_pixels(r.content)
+    assert pixels.shape == (16, 64) and (pixels == 500).all()
+
+
+def test_get_put_patch_config(client: TestClient, lab: tuple[LabService, FakeEngine]) -> None:
+    cfg = client.get("/api/config").json()
+    assert cfg["name"] == "chain-1x64"
+    cfg["sim"]["loading_probability"] = 0.9
+    r = client.put("/api/config", json=cfg)
+    assert r.status_code == 200 and r.json()["sim"]["loading_probability"] == 0.9
+    assert lab[1].config.sim.loading_probability == 0.9  # applied in the engine
+    r = client.patch("/api/config", json={"loop": {"max_cycles": 3}, "imaging": {"threshold": None}})
+    assert r.status_code == 200
+    got = client.get("/api/config").json()
+    assert got["loop"]["max_cycles"] == 3 and got["sim"]["loading_probability"] == 0.9
+
+
+@pytest.mark.parametrize(
+    ("method", "body", "field"),
+    [
+        ("patch", {"sim": {"loading_probability": 1.5}}, ["body", "sim", "loading_probability"]),
+        ("patch", {"waveforms": {"shape": "square"}}, ["body", "waveforms", "shape"]),
+        ("patch", {"nonsense": 1}, ["body", "nonsense"]),
+        ("patch", {"array": {"ny": 2}}, ["body", "array"]),  # a chain needs one row
+        ("patch", {"solver": {"algorithm": "refuse"}}, ["body"]),  # the engine refuses it when applying
+        ("put", {"sim": {"loading_probability": -1}}, ["body", "sim", "loading_probability"]),
+        ("put", {"loop": {"max_cycles": "many"}}, ["body", "loop", "max_cycles"]),
+    ],
+)
+def test_bad_config_is_422_and_changes_nothing(
+    client: TestClient, lab: tuple[LabService, FakeEngine], method: str, body: dict, field: list
+) -> None:
+    before = client.get("/api/config").json()
+    applied = len(lab[1].applied)
+    r = client.request(method.upper(), "/api/config", json=body)
+    assert r.status_code == 422
+    detail = r.json()["detail"]
+    assert any(d["loc"][: len(field)] == field and d["msg"] for d in detail), detail
+    assert client.get("/api/config").json() == before
+    assert lab[1].config.model_dump(mode="json") == before
+    assert len(lab[1].applied) <= applied + 1  # at most the refused attempt reached the engine
+
+
+def test_malformed_json_is_a_declared_client_error(client: TestClient) -> None:
+    r = client.patch("/api/config", content=b"{not json", headers={"content-type": "application/json"})
+    assert r.status_code in (400, 422)
+    r = client.patch("/api/config", json=[1, 2])
+    assert r.status_code == 422
+
+
+def test_shot_with_override_applies_for_that_shot_only(client: TestClient, lab: tuple[LabService, FakeEngine]) -> None:
+    before = client.get("/api/config").json()
+    r = client.post("/api/shots", json={"config": {"sim": {"loading_probability": 1.0}}})
+    assert r.status_code == 200
+    shot = r.json()
+    assert shot["atoms_loaded"] == 64 and shot["config_digest"] != lab[0].config.digest()
+    assert client.get("/api/config").json() == before
+    assert lab[1].config.model_dump(mode="json") == before
+    r = client.post("/api/shots", json={"config": {"sim": {"loading_probability": 2}}})
+    assert r.status_code == 422 and client.get("/api/config").json() == before
+
+
+def test_two_concurrent_shots_are_serialized(tmp_path: Path) -> None:
+    service, engine = make_service(tmp_path, shot_s=0.1)
+    try:
+        with TestClient(create_app(service=service)) as c:
+            results: list[dict] = []
+            threads = [threading.Thread(target=lambda: results.append(c.post("/api/shots").json())) for _ in range(2)]
+            t0 = time.monotonic()
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            assert time.monotonic() - t0 >= 0.2
+            assert sorted(r["shot_id"] for r in results) == [0, 1]
+            assert engine.max_in_shot == 1
+    finally:
+        service.close()
+
+
+def test_run_and_stop(client: TestClient) -> None:
+    r = client.post("/api/run")
+    assert r.status_code == 200 and r.json()["running"] is True
+    deadline = time.monotonic() + 5
+    while client.get("/api/status").json()["shots_done"] < 3:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert client.get("/api/status").json()["state"] == "running"
+    assert client.post("/api/stop").json()["running"] is False
+    time.sleep(0.05)
+    done = client.get("/api/status").json()["shots_done"]
+    time.sleep(0.1)
+    s = client.get("/api/status").json()
+    assert s["shots_done"] == done and s["state"] == "idle"
+
+
+def test_fault_shows_in_status_and_stops_continuous_shots(
+    client: TestClient, lab: tuple[LabService, FakeEngine]
+) -> None:
+    lab[1].fault = "DeviceError: AWG underrun"
+    client.post("/api/run")
+    deadline = time.monotonic() + 5
+    while (s := client.get("/api/status").json())["state"] != "fault":
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert s["reason"] == "DeviceError: AWG underrun" and s["running"] is False
+    client.post("/api/run")  # a person restarts: the fault is cleared
+    assert client.get("/api/status").json()["state"] == "running"
+    client.post("/api/stop")
+
+
+def test_live_websocket_sends_each_cycle(client: TestClient) -> None:
+    with client.websocket_connect("/api/live") as ws:
+        shot = client.post("/api/shots").json()
+        messages = [ws.receive_json() for _ in range(len(shot["cycles"]))]
+    assert [m["cycle"] for m in messages] == list(range(len(shot["cycles"])))
+    assert all(m["type"] == "cycle" and m["shot_id"] == shot["shot_id"] for m in messages)
+    assert messages[-1]["last"] and messages[-1]["outcome"] == shot["outcome"]
+    assert messages[0]["occupancy"] == shot["cycles"][0]["occupancy"] and messages[0]["target"] == shot["target"]
+    assert set(messages[0]["stage_us"]) >= {"I.acquire", "II.detect"}
+
+
+def test_live_websocket_starts_with_the_last_shot(client: TestClient) -> None:
+    shot = client.post("/api/shots").json()
+    with client.websocket_connect("/api/live") as ws:
+        first = ws.receive_json()
+    assert first["shot_id"] == shot["shot_id"] and first["cycle"] == 0
+
+
+def test_stalled_live_subscriber_drops_oldest_and_never_blocks(lab: tuple[LabService, FakeEngine]) -> None:
+    """A subscriber that never reads: the publishing (engine) thread never waits, the queue keeps the newest."""
+    hub = LiveHub(maxsize=8)
+    records = lab[0].shot(), lab[0].shot()
+
+    async def scenario() -> asyncio.Queue:
+        hub.bind(asyncio.get_running_loop())
+        q = hub.subscribe()
+        t0 = time.perf_counter()
+        publisher = threading.Thread(target=lambda: [hub.publish_record(records[i % 2]) for i in range(200)])
+        publisher.start()
+        await asyncio.to_thread(publisher.join)
+        assert time.perf_counter() - t0 < 1.0
+        await asyncio.sleep(0.05)  # let the loop run the scheduled fan-outs
+        return q
+
+    q = asyncio.run(scenario())
+    assert q.qsize() == 8 and hub.dropped > 0
+    newest = [q.get_nowait() for _ in range(8)]
+    assert newest[-1]["shot_id"] == records[1].shot_id and newest[-1]["last"]
+
+
+@pytest.fixture
+def secured(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[TestClient]:
+    service, _ = make_service(tmp_path)
+    try:
+        with TestClient(create_app(service=service, token="s3cret")) as c:
+            yield c
+    finally:
+        service.close()
+
+
+@pytest.mark.parametrize(
+    ("method", "path", "body"),
+    [
+        ("POST", "/api/shots", None),
+        ("POST", "/api/run", None),
+        ("POST", "/api/stop", None),
+        ("PATCH", "/api/config", {"sim": {"loading_probability": 0.5}}),
+        ("PUT", "/api/config", {}),
+    ],
+)
+def test_mutations_need_the_token(secured: TestClient, method: str, path: str, body: dict | None) -> None:
+    before = secured.get("/api/config").json()
+    for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "Basic czNjcmV0"}):
+        r = secured.request(method, path, json=body, headers=headers)
+        assert r.status_code == 401, (headers, r.text)
+        assert r.headers["www-authenticate"] == "Bearer"
+    assert secured.get("/api/config").json() == before
+    assert secured.get("/api/status").json()["shots_done"] == 0
+    r = secured.request(method, path, json=body, headers={"Authorization": "Bearer s3cret"})
+    assert r.status_code == 200
+
+
+def test_reads_need_no_token(secured: TestClient) -> None:
+    for path in ("/", "/api/status", "/api/config", "/api/shots", "/openapi.json"):
+        assert secured.get(path).status_code == 200
+
+
+def test_cors_closed_by_default(client: TestClient) -> None:
+    r = client.options(
+        "/api/shots", headers={"Origin": "http://evil.example", "Access-Control-Request-Method": "POST"}
+    )
+    assert "access-control-allow-origin" not in r.headers
+    r = client.get("/api/status", headers={"Origin": "http://evil.example"})
+    assert "access-control-allow-origin" not in r.headers
+
+
+def test_every_shot_lands_in_the_run_file(client: TestClient, lab: tuple[LabService, FakeEngine]) -> None:
+    ids = [client.post("/api/shots").json()["shot_id"] for _ in range(3)]
+    client.patch("/api/config", json={"sim": {"loading_probability": 0.7}})
+    ids.append(client.post("/api/shots").json()["shot_id"])
+    store = lab[0]._store
+    assert store is not None
+    store.flush()
+    files = sorted(store.directory.glob("*.h5"))
+    assert len(files) == 2  # a new configuration starts a new run file
+    with h5py.File(files[0], "r", swmr=True) as f:
+        assert list(f["shot_id"][:]) == ids[:3]
+        assert f["occupancy"].shape[1:] == (6, 1, 64)
+        assert '"loading_probability":0.6' in f.attrs["config_json"]
+    with h5py.File(files[1], "r", swmr=True) as f:
+        assert list(f["shot_id"][:]) == ids[3:]

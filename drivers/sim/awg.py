@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -158,18 +157,16 @@ class SimAWG:
                 self.fail_next_upload = False
                 raise DeviceError(f"sim AWG: injected upload failure (segment {index})")
             t_begin = self.clock.now_s()
-            wall0 = time.perf_counter()
             seg = _Segment(samples.copy(), t_begin, t_begin)
-            self._decoded(seg)  # decode now, inside the modelled upload time, not later during playback
-            spent = time.perf_counter() - wall0
+            with self.clock.paused():  # the simulator's decoding is not the card's time
+                self._decoded(seg)
             cost = (
                 samples.nbytes / self.awg_config.upload_bytes_per_s
                 + abs(float(self.rng.normal(0.0, self.awg_config.upload_jitter_s)))
                 + self.upload_delay_s
             )
-            # the simulator's own decoding time already passed on the clock; charge only the rest
-            self.clock.advance(cost - spent)
-            seg.t_ready_s = t_begin + max(cost, spent)
+            self.clock.advance(cost)
+            seg.t_ready_s = t_begin + cost
             self._pending.append((seg.t_ready_s, 0, index, seg))
             data = seg.data
             self.uploads += 1
@@ -301,12 +298,14 @@ class SimAWG:
 
     def _sync(self) -> None:
         now = self.clock.now_s()
+        with self.clock.paused():  # replaying playback into the world is the simulator's work, not the card's
+            if self._running:
+                self._advance(now)
+            else:
+                self._commit_pending(now)
+            self.world.elapse_to(now)
         if self._running:
-            self._advance(now)
             self._raise_fault()
-        else:
-            self._commit_pending(now)
-        self.world.elapse_to(now)
 
     def _commit_pending(self, t_s: float) -> None:
         """Apply memory writes that have taken effect by ``t_s`` (they are in time order)."""

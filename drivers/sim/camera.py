@@ -244,7 +244,8 @@ class SimCamera:
                 f"camera: no frame within {timeout_s * 1e3:.1f} ms of waiting (frame {self._frame_index} needs "
                 f"{self._readout.total_s * 1e3:.2f} ms from trigger); check the trigger, exposure and timeout"
             )
-        self._render(out)
+        with self._clock.paused():  # rendering is the simulator's work; the frame's time is the model's
+            self._render(out)
         self._clock.advance_to(t_ready_s)
         if fault == "corrupt":
             tear_row = int(self._rng.integers(0, self._frame_shape[0]))

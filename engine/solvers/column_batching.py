@@ -43,29 +43,43 @@ def _in_group(src: int, dst: int, group: int) -> bool:
 def _vertical_batch(
     c: int, mv: np.ndarray, m0: int, m1: int, group: int, n: int,
     kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
-    y_used: np.ndarray, x_used: np.ndarray,
+    y_used: np.ndarray, x_used: np.ndarray, scratch: np.ndarray,
 ) -> int:
-    """One column batch of the movers ``mv[m0:m1]`` in ``group``; returns the next free slot."""
+    """One column batch of the movers ``mv[m0:m1]`` in ``group``; returns the next free slot.
+    ``scratch`` rows: current row, steps left, direction of each tone."""
+    cur = scratch[0]
+    left = scratch[1]
+    sign = scratch[2]
+    m = 0
     dmax = 0
     for i in range(m0, m1):
-        if _in_group(mv[i, 0], mv[i, 1], group):
-            dmax = max(dmax, abs(mv[i, 1] - mv[i, 0]))
-    if dmax == 0:
+        src = mv[i, 0]
+        dst = mv[i, 1]
+        if _in_group(src, dst, group):
+            cur[m] = src
+            left[m] = abs(dst - src)
+            sign[m] = 1 if dst > src else -1
+            dmax = max(dmax, left[m])
+            m += 1
+    if m == 0:
         return n
     for t in range(dmax + 2):
-        kind[n] = EXTRACT if t == 0 else (IMPLANT if t == dmax + 1 else SHIFT)
-        j = 0
-        for i in range(m0, m1):
-            src = mv[i, 0]
-            dst = mv[i, 1]
-            if not _in_group(src, dst, group):
-                continue
-            step = 1 if dst > src else -1
-            moved = min(max(t - 1, 0), abs(dst - src))
-            y_site[n, j] = src + step * moved
-            y_delta[n, j] = step if (kind[n] == SHIFT and moved < abs(dst - src)) else 0
-            j += 1
-        y_used[n] = j
+        ys = y_site[n]
+        for j in range(m):
+            ys[j] = cur[j]
+        if t == 0:
+            kind[n] = EXTRACT
+        elif t == dmax + 1:
+            kind[n] = IMPLANT
+        else:
+            kind[n] = SHIFT
+            ds = y_delta[n]
+            for j in range(m):
+                d = sign[j] if left[j] > 0 else 0
+                ds[j] = d
+                cur[j] += d
+                left[j] -= abs(d)
+        y_used[n] = m
         x_site[n, 0] = c
         x_delta[n, 0] = 0
         x_used[n] = 1
@@ -120,16 +134,22 @@ def count_slots(seg: np.ndarray, n_seg: int, mv: np.ndarray, wide: bool) -> int:
 def batch_segments(
     seg: np.ndarray, n_seg: int, mv: np.ndarray, wide: bool, n_prev: int,
     kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
-    y_used: np.ndarray, x_used: np.ndarray,
+    y_used: np.ndarray, x_used: np.ndarray, scratch: np.ndarray,
 ) -> int:
     """Write the slots of all segments into the table (capacity checked by the caller with
     ``count_slots``); first resets the entries the previous plan wrote (``n_prev`` slots). Returns the
     number of slots."""
     for i in range(n_prev):
-        y_site[i, : y_used[i]] = -1
-        y_delta[i, : y_used[i]] = 0
-        x_site[i, : x_used[i]] = -1
-        x_delta[i, : x_used[i]] = 0
+        ys = y_site[i]
+        dy = y_delta[i]
+        for j in range(y_used[i]):
+            ys[j] = -1
+            dy[j] = 0
+        xs = x_site[i]
+        dx = x_delta[i]
+        for j in range(x_used[i]):
+            xs[j] = -1
+            dx[j] = 0
         kind[i] = 0
         y_used[i] = 0
         x_used[i] = 0
@@ -145,8 +165,12 @@ def batch_segments(
                         a, b, mv, i, i + 1, n, kind, y_site, y_delta, x_site, x_delta, y_used, x_used
                     )
         elif wide:
-            n = _vertical_batch(a, mv, m0, m1, _ALL, n, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
+            n = _vertical_batch(a, mv, m0, m1, _ALL, n, kind, y_site, y_delta, x_site, x_delta, y_used, x_used, scratch)
         else:
-            n = _vertical_batch(a, mv, m0, m1, _DOWN, n, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
-            n = _vertical_batch(a, mv, m0, m1, _UP, n, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
+            n = _vertical_batch(
+                a, mv, m0, m1, _DOWN, n, kind, y_site, y_delta, x_site, x_delta, y_used, x_used, scratch
+            )
+            n = _vertical_batch(
+                a, mv, m0, m1, _UP, n, kind, y_site, y_delta, x_site, x_delta, y_used, x_used, scratch
+            )
     return n

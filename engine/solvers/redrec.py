@@ -54,6 +54,7 @@ class RedRecPlanner:
         self._recv = np.zeros((nx, 7), dtype=np.int64)
         self._slide = np.zeros((nx, ny + 1), dtype=np.int64)
         self._pos = np.zeros(ny, dtype=np.int64)
+        self._scratch = np.zeros((3, ny), dtype=np.int64)
         self._seg = np.zeros((8 * nx + 8, 5), dtype=np.int64)
         self._mv = np.zeros((3 * n_traps, 2), dtype=np.int64)
         self._steps = np.zeros((n_traps * (nx + ny), 2), dtype=np.int32)
@@ -120,7 +121,7 @@ class RedRecPlanner:
             self._grow(need)
         ops.n = batch_segments(
             self._seg, self._n_seg, self._mv, self._wide, ops.n, ops.kind, ops.y_site, ops.y_delta,
-            ops.x_site, ops.x_delta, self._y_used, self._x_used,
+            ops.x_site, ops.x_delta, self._y_used, self._x_used, self._scratch,
         )  # fmt: skip
         return Plan(steps=self._steps[: self._n_steps], operations=ops, algorithm=self.batching)
 

@@ -136,9 +136,12 @@ def batch_segments(
     kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
     y_used: np.ndarray, x_used: np.ndarray, scratch: np.ndarray,
 ) -> int:
-    """Write the slots of all segments into the table (capacity checked by the caller with
-    ``count_slots``); first resets the entries the previous plan wrote (``n_prev`` slots). Returns the
-    number of slots."""
+    """Write the slots of all segments into the table; first resets the entries the previous plan wrote
+    (``n_prev`` slots). Returns the number of slots, or minus the number needed if the table is too small
+    (then nothing is written)."""
+    need = count_slots(seg, n_seg, mv, wide)
+    if need > kind.shape[0]:
+        return -need
     for i in range(n_prev):
         ys = y_site[i]
         dy = y_delta[i]

@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from engine.operations import Operations, Plan
-from engine.solvers.column_batching import batch_segments, count_slots
-from engine.solvers.redrec_solve import UNSOLVABLE, append_steps, band_rows, redrec_segments
+from engine.solvers.column_batching import batch_segments
+from engine.solvers.redrec_solve import UNSOLVABLE, band_rows, solve_band
 
 __all__ = ["BATCHINGS", "RedRecPlanner"]
 
@@ -97,9 +97,9 @@ class RedRecPlanner:
                 + _BAND_PROBLEMS[problem].format(lo=lo, hi=hi - 1)
             )
         self._solved = False
-        status, self._n_seg, _ = redrec_segments(
+        status, self._n_seg, self._n_steps = solve_band(
             occupancy, lo, hi, self._work, self._surplus, self._nxt, self._prv, self._tr, self._rows,
-            self._recv, self._slide, self._pos, self._seg, self._mv,
+            self._recv, self._slide, self._pos, self._seg, self._mv, self._steps,
         )  # fmt: skip
         if status == UNSOLVABLE:
             from engine.solvers import UnsolvableError  # the package imports this module
@@ -107,7 +107,6 @@ class RedRecPlanner:
             raise UnsolvableError(
                 f"{int(occupancy.sum())} atoms cannot fill {int(target.sum())} target traps"
             )
-        self._n_steps = append_steps(self._seg, self._n_seg, self._mv, self.nx, self._steps)
         self._solved = True
         return self._n_steps
 
@@ -116,14 +115,19 @@ class RedRecPlanner:
         if not self._solved:
             raise RuntimeError("batch() needs a successful solve_moves() first")
         ops = self.operations
-        need = count_slots(self._seg, self._n_seg, self._mv, self._wide)
-        if need > ops.capacity:
-            self._grow(need)
-        ops.n = batch_segments(
+        n = self._batch()
+        if n < 0:
+            self._grow(-n)
+            n = self._batch()
+        ops.n = n
+        return Plan(steps=self._steps[: self._n_steps], operations=ops, algorithm=self.batching)
+
+    def _batch(self) -> int:
+        ops = self.operations
+        return batch_segments(
             self._seg, self._n_seg, self._mv, self._wide, ops.n, ops.kind, ops.y_site, ops.y_delta,
             ops.x_site, ops.x_delta, self._y_used, self._x_used, self._scratch,
         )  # fmt: skip
-        return Plan(steps=self._steps[: self._n_steps], operations=ops, algorithm=self.batching)
 
     def _grow(self, need: int) -> None:
         """Rare: a plan longer than the preallocated table (allocates once, then stays)."""

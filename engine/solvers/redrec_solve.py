@@ -38,7 +38,7 @@ HORIZONTAL = 1
 OK = 0
 UNSOLVABLE = 1
 
-__all__ = ["HORIZONTAL", "OK", "UNSOLVABLE", "VERTICAL", "band_rows", "redrec_segments", "append_steps"]
+__all__ = ["HORIZONTAL", "OK", "UNSOLVABLE", "VERTICAL", "append_steps", "band_rows", "redrec_segments", "solve_band"]
 
 
 @njit(cache=True, nogil=True)
@@ -441,3 +441,16 @@ def append_steps(seg: np.ndarray, n_seg: int, mv: np.ndarray, nx: int, steps: np
                 n += 1
                 y -= 1
     return n
+
+
+@njit(cache=True, nogil=True)
+def solve_band(
+    occ: np.ndarray, lo: int, hi: int, work: np.ndarray, surplus: np.ndarray, nxt: np.ndarray,
+    prv: np.ndarray, tr: np.ndarray, rows: np.ndarray, recv: np.ndarray, slide: np.ndarray,
+    pos: np.ndarray, seg: np.ndarray, mv: np.ndarray, steps: np.ndarray,
+) -> tuple[int, int, int]:
+    """``redrec_segments`` then ``append_steps`` in one call: ``(status, n_segments, n_steps)``."""
+    status, n_seg, _ = redrec_segments(occ, lo, hi, work, surplus, nxt, prv, tr, rows, recv, slide, pos, seg, mv)
+    if status != OK:
+        return status, 0, 0
+    return status, n_seg, append_steps(seg, n_seg, mv, occ.shape[1], steps)

@@ -173,9 +173,9 @@ class Engine:
         dev.camera.trigger()
         dev.camera.read(p.image, timeout_s=p.config.camera.timeout_s)
         t_image = timer.lap("I.acquire")
-        p.detector.weighted_sums(p.image)
+        p.detector.sum(p.image)
         timer.lap("II.detect")
-        p.detector.threshold(p.occupancy)
+        p.detector.classify(p.occupancy)
         timer.lap("II.threshold")
         p.history[cycle] = p.occupancy
         if np.all(p.occupancy[p.target]):

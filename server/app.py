@@ -14,9 +14,12 @@ from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
 from fastapi import Body, Depends, FastAPI, HTTPException, Path, Query, Request, WebSocket
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import HTMLResponse, Response
+from fastapi.responses import HTMLResponse, JSONResponse, Response
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from engine.config import SystemConfig
 from server.hub import LiveHub, cycle_messages
@@ -26,7 +29,7 @@ from server.service import ConfigRejected, LabService
 
 __all__ = ["create_app"]
 
-_bearer = HTTPBearer(auto_error=False, description="required on mutating routes when LLRS_TOKEN is set")
+_bearer = HTTPBearer(auto_error=False, description="LLRS_TOKEN: required on every mutating route")
 
 _ERR = {"model": ErrorOut}
 _BODY_ERRORS: dict[int | str, dict[str, Any]] = {
@@ -81,15 +84,31 @@ def create_app(
             CORSMiddleware, allow_origins=list(cors_origins), allow_methods=["*"], allow_headers=["*"]
         )
 
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        """A 405 names every method of the path (Starlette names only the first route's, e.g. GET for /api/config)."""
+        if exc.status_code == 405:
+            allowed = sorted(
+                {
+                    method
+                    for route in app.router.routes
+                    if isinstance(route, APIRoute) and route.path_regex.match(request.url.path)
+                    for method in route.methods
+                }
+            )
+            return JSONResponse({"detail": exc.detail}, status_code=405, headers={"Allow": ", ".join(allowed)})
+        return await http_exception_handler(request, exc)
+
     def require_token(
         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
     ) -> None:
-        if token is None:
-            return
         if credentials is None or not hmac.compare_digest(credentials.credentials.encode(), token.encode()):
             raise HTTPException(401, detail="missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
 
-    auth = [Depends(require_token)]
+    # Without a token the routes carry no security requirement at all, so /openapi.json stays true either way.
+    auth = [Depends(require_token)] if token is not None else []
+    body_errors = _BODY_ERRORS if token is not None else {k: v for k, v in _BODY_ERRORS.items() if k != 401}
+    auth_errors = _AUTH_ERRORS if token is not None else {}
 
     def rejected(err: ConfigRejected) -> HTTPException:
         return HTTPException(422, detail=err.errors)
@@ -122,7 +141,7 @@ def create_app(
         "/api/config",
         response_model=SystemConfig,
         dependencies=auth,
-        responses=_BODY_ERRORS,
+        responses=body_errors,
         summary="Replace the whole configuration (validated; applied between shots)",
     )
     def put_config(config: SystemConfig) -> SystemConfig:
@@ -135,7 +154,7 @@ def create_app(
         "/api/config",
         response_model=SystemConfig,
         dependencies=auth,
-        responses=_BODY_ERRORS,
+        responses=body_errors,
         summary="Change part of the configuration (deep-merged, then validated; applied between shots)",
     )
     def patch_config(
@@ -153,7 +172,7 @@ def create_app(
         "/api/run",
         response_model=RunStateOut,
         dependencies=auth,
-        responses=_AUTH_ERRORS,
+        responses=auth_errors,
         summary="Run shots continuously (with a pause between them)",
     )
     def run() -> RunStateOut:
@@ -164,7 +183,7 @@ def create_app(
         "/api/stop",
         response_model=RunStateOut,
         dependencies=auth,
-        responses=_AUTH_ERRORS,
+        responses=auth_errors,
         summary="Stop continuous shots after the one in progress",
     )
     def stop() -> RunStateOut:
@@ -175,7 +194,7 @@ def create_app(
         "/api/shots",
         response_model=ShotOut,
         dependencies=auth,
-        responses=_BODY_ERRORS,
+        responses=body_errors,
         summary="Run one shot now and return its record (optionally with a config override for this shot only)",
     )
     def post_shot(request: Annotated[ShotRequest | None, Body()] = None) -> ShotOut:

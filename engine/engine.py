@@ -98,6 +98,7 @@ class Engine:
             history=np.zeros((config.loop.max_cycles + 1, arr.ny, arr.nx), dtype=bool),
             timer=StageTimer(dev.clock.now_s, config.loop.max_cycles + 1),
         )
+        pipeline.solver.check_target(target)
         dev.camera.configure(config.camera)
         if dev.camera.frame_shape != pipeline.image.shape:
             pipeline.image = np.zeros(dev.camera.frame_shape, dtype=np.uint16)

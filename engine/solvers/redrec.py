@@ -80,6 +80,17 @@ class RedRecPlanner:
         self._x_used[:] = 0
         self._solved = False
 
+    def check_target(self, target: np.ndarray) -> None:
+        """Raise ``ValueError`` unless ``target`` is a full-width band of contiguous rows."""
+        if target.shape != (self.ny, self.nx):
+            raise ValueError(f"target shape {target.shape} must be (ny, nx) = {(self.ny, self.nx)}")
+        lo, hi, problem = band_rows(target)
+        if problem:
+            raise ValueError(
+                "red-rec needs a target that is a full-width band of contiguous rows: "
+                + _BAND_PROBLEMS[problem].format(lo=lo, hi=hi - 1)
+            )
+
     def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
         """Plan the one-site moves for ``occupancy`` (``bool[ny, nx]``); returns their number.
 
@@ -92,10 +103,7 @@ class RedRecPlanner:
             )
         lo, hi, problem = band_rows(target)
         if problem:
-            raise ValueError(
-                "red-rec needs a target that is a full-width band of contiguous rows: "
-                + _BAND_PROBLEMS[problem].format(lo=lo, hi=hi - 1)
-            )
+            self.check_target(target)
         self._solved = False
         status, self._n_seg, self._n_steps = solve_band(
             occupancy, lo, hi, self._work, self._surplus, self._nxt, self._prv, self._tr, self._rows,

@@ -1,0 +1,139 @@
+"""Module III: turn an occupancy and a target into a plan (one-site steps + the waveform slots that do them).
+
+Every planner has the same two-stage shape, timed separately by the engine as the paper's Table 1 does:
+``solve_moves(occupancy, target)`` (stage III.solve: which atom goes where, raising ``UnsolvableError``)
+and ``batch()`` (stage III.batch: the ``Plan``, a view of the planner's own buffers, valid until the next
+solve). Planners allocate their buffers and compile their kernels in the constructor, so the hot path does
+neither. ``check_target(target)`` says up front, with a clear message, when a planner cannot handle a
+target, so a bad configuration is refused when it is applied rather than failing mid-shot.
+
+``solve(occupancy, target, algorithm=...)`` is the one-call convenience for scripts and tests.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
+import numpy as np
+
+from engine.operations import Plan
+
+__all__ = ["ALGORITHMS", "Planner", "PlannerError", "Solver", "UnsolvableError", "solve"]
+
+
+class UnsolvableError(RuntimeError):
+    """Fewer atoms than target traps: no plan can fill the target (the shot ends, it is not a fault)."""
+
+
+class PlannerError(ValueError):
+    """A planner cannot handle this array, trap source or target; the message says which one can."""
+
+
+class Planner(Protocol):
+    nx: int
+    ny: int
+
+    def check_target(self, target: np.ndarray) -> None: ...
+
+    def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int: ...
+
+    def batch(self) -> Plan: ...
+
+
+def _exact_1d(nx: int, ny: int, trap_source: str) -> Planner:
+    from engine.solvers.exact1d import Exact1DPlanner
+
+    return Exact1DPlanner(nx, ny, trap_source=trap_source)
+
+
+def _red_rec(batching: str) -> Callable[[int, int, str], Planner]:
+    def build(nx: int, ny: int, trap_source: str) -> Planner:
+        from engine.solvers.redrec import RedRecPlanner
+
+        if trap_source != "slm":
+            raise PlannerError(
+                f"{batching} moves atoms between static SLM traps with crossed AODs; an AOD chain "
+                "(trap_source 'aod') uses exact-1d"
+            )
+        return RedRecPlanner(nx, ny, batching=batching)
+
+    return build
+
+
+#: name -> factory(nx, ny, trap_source); the names ``solve`` and ``solver.algorithm`` accept.
+_FACTORIES: dict[str, Callable[[int, int, str], Planner]] = {
+    "exact-1d": _exact_1d,
+    "red-rec": _red_rec("red-rec"),
+    "red-rec-wide": _red_rec("red-rec-wide"),
+}
+
+ALGORITHMS: tuple[str, ...] = tuple(_FACTORIES)
+
+
+class Solver:
+    """The engine's Module III: the configured planner behind one stable interface."""
+
+    def __init__(self, *, nx: int, ny: int, algorithm: str, trap_source: str = "slm") -> None:
+        factory = _FACTORIES.get(algorithm)
+        if factory is None:
+            raise PlannerError(f"solver.algorithm {algorithm!r} is not known; choose one of {', '.join(ALGORITHMS)}")
+        try:
+            self.planner = factory(nx, ny, trap_source)
+        except PlannerError:
+            raise
+        except ValueError as err:
+            raise PlannerError(f"solver.algorithm {algorithm!r}: {err}") from None
+        self.algorithm = algorithm
+        self.trap_source = trap_source
+
+    def check_target(self, target: np.ndarray) -> None:
+        try:
+            self.planner.check_target(target)
+        except ValueError as err:
+            raise PlannerError(f"solver.algorithm {self.algorithm!r} cannot fill this target: {err}") from None
+
+    def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
+        return self.planner.solve_moves(occupancy, target)
+
+    def batch(self) -> Plan:
+        return self.planner.batch()
+
+
+_cache: dict[tuple[int, int, str, str], Solver] = {}
+
+
+def solve(
+    occupancy: np.ndarray, target: np.ndarray, *, algorithm: str = "exact-1d", trap_source: str | None = None
+) -> Plan:
+    """Plan one cycle: ``occupancy`` and ``target`` are ``bool[ny, nx]`` (a 1D array is one row).
+
+    ``trap_source`` defaults to ``"aod"`` (a chain) for one row and ``"slm"`` for a grid. The plan's arrays
+    are copies, so it stays valid after later calls. Raises ``UnsolvableError`` or ``PlannerError``.
+    """
+    occupancy = np.atleast_2d(np.asarray(occupancy, dtype=bool))
+    target = np.atleast_2d(np.asarray(target, dtype=bool))
+    ny, nx = occupancy.shape
+    if target.shape != occupancy.shape:
+        raise ValueError(f"target shape {target.shape} differs from occupancy shape {occupancy.shape}")
+    source = trap_source or ("aod" if ny == 1 else "slm")
+    key = (nx, ny, algorithm, source)
+    solver = _cache.get(key)
+    if solver is None:
+        solver = _cache[key] = Solver(nx=nx, ny=ny, algorithm=algorithm, trap_source=source)
+    solver.check_target(target)
+    solver.solve_moves(occupancy, target)
+    plan = solver.batch()
+    return _copy_plan(plan)
+
+
+def _copy_plan(plan: Plan) -> Plan:
+    from engine.operations import Operations
+
+    src = plan.operations
+    ops = Operations(nx=src.nx, ny=src.ny, capacity=max(len(src), 1))
+    n = len(src)
+    for name in ("kind", "y_site", "y_delta", "x_site", "x_delta"):
+        getattr(ops, name)[:n] = getattr(src, name)[:n]
+    ops.n = n
+    return Plan(steps=plan.steps.copy(), operations=ops, algorithm=plan.algorithm, notes=dict(plan.notes))

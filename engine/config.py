@@ -25,6 +25,7 @@ __all__ = [
     "CameraConfig",
     "ConfigError",
     "DevicesConfig",
+    "FaultConfig",
     "ImagingConfig",
     "LoopConfig",
     "SimConfig",
@@ -201,6 +202,26 @@ class LoopConfig(_Model):
     trigger: Literal["software", "hardware"] = "software"
 
 
+class FaultConfig(_Model):
+    """Faults injected into the simulated lab, for testing how the system fails (python-microscope style).
+
+    Each stays in force until it is set back, so a test (or a person at the dashboard) can break a device,
+    watch the engine end shots in a defined state, clear the fault and see the next shot work.
+    """
+
+    camera: Literal["none", "timeout", "corrupt"] = Field(
+        default="none", description="every frame read times out, or arrives torn (the grabber reports it)"
+    )
+    awg_upload: Literal["none", "fail"] = Field(default="none", description="every segment upload fails")
+    upload_delay_s: Annotated[float, Field(ge=0, le=1)] = Field(
+        default=0.0, description="extra time added to every segment upload (late uploads cause underruns)"
+    )
+    solver: Literal["none", "exception"] = Field(
+        default="none", description="the planner raises an unexpected exception (a bug) in every solve"
+    )
+    disk_full: bool = Field(default=False, description="writing shot records fails as on a full disk")
+
+
 class SimConfig(_Model):
     """The simulated lab: atoms, loss and time."""
 
@@ -211,6 +232,7 @@ class SimConfig(_Model):
     vacuum_lifetime_s: PositiveFloat = 60.0
     lossless: bool = False
     time: Literal["simulated", "realtime"] = "simulated"
+    faults: FaultConfig = FaultConfig()
 
 
 class DevicesConfig(_Model):

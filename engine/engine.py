@@ -20,6 +20,7 @@ import numpy as np
 from engine.config import SystemConfig
 from engine.devices import DeviceError, DeviceSet, StepInfo
 from engine.imaging import Detector
+from engine.operations import Plan
 from engine.records import CycleRecord, Outcome, ShotRecord
 from engine.solvers import Solver, UnsolvableError
 from engine.streaming import Streamer
@@ -27,7 +28,7 @@ from engine.targets import build_target
 from engine.timing import StageTimer
 from engine.waveforms import WaveformBank
 
-__all__ = ["Engine", "EngineThread", "Lab"]
+__all__ = ["Engine", "EngineThread", "InjectedSolverFault", "Lab"]
 
 
 class Lab(Protocol):
@@ -36,9 +37,33 @@ class Lab(Protocol):
     Real hardware has no such object: the experiment loads the atoms and nobody knows the truth.
     """
 
+    def configure(self, config: SystemConfig) -> None:
+        """Adopt a configuration the engine is applying (array, loss model, injected faults)."""
+        ...
+
     def prepare_shot(self) -> None: ...
 
     def ground_truth(self) -> np.ndarray: ...
+
+
+class InjectedSolverFault(Exception):
+    """Raised by the planner when ``sim.faults.solver`` asks for it: stands in for a bug in a planner."""
+
+
+class _FailingSolver:
+    """Wraps the configured solver and fails every solve (fault injection in the simulated lab only)."""
+
+    def __init__(self, solver: Solver) -> None:
+        self._solver = solver
+
+    def check_target(self, target: np.ndarray) -> None:
+        self._solver.check_target(target)
+
+    def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
+        raise InjectedSolverFault("injected solver fault (sim.faults.solver = 'exception')")
+
+    def batch(self) -> Plan:
+        return self._solver.batch()
 
 
 @dataclass
@@ -48,7 +73,7 @@ class _Pipeline:
     config: SystemConfig
     target: np.ndarray
     detector: Detector
-    solver: Solver
+    solver: Solver | _FailingSolver
     bank: WaveformBank
     streamer: Streamer
     image: np.ndarray
@@ -99,14 +124,30 @@ class Engine:
             timer=StageTimer(dev.clock.now_s, config.loop.max_cycles + 1),
         )
         pipeline.solver.check_target(target)
+        if self.lab is not None and config.sim.faults.solver == "exception":
+            pipeline.solver = _FailingSolver(pipeline.solver)
+        try:
+            self._program_devices(pipeline)
+        except Exception:
+            if self._p is not None:  # put the devices back the way the running configuration wants them
+                self._program_devices(self._p)
+            raise
+        self._p = pipeline
+
+    def _program_devices(self, pipeline: _Pipeline) -> None:
+        dev = self.devices
+        config = pipeline.config
+        if self.lab is not None:
+            self.lab.configure(config)
         dev.camera.configure(config.camera)
         if dev.camera.frame_shape != pipeline.image.shape:
             pipeline.image = np.zeros(dev.camera.frame_shape, dtype=np.uint16)
         dev.awg.stop()
-        dev.awg.configure(config.awg, n_channels=bank.n_channels, sample_rate_hz=config.waveforms.sample_rate_hz)
+        dev.awg.configure(
+            config.awg, n_channels=pipeline.bank.n_channels, sample_rate_hz=config.waveforms.sample_rate_hz
+        )
         pipeline.streamer.program_idle()
         dev.awg.start(pipeline.streamer.layout.idle_step)
-        self._p = pipeline
 
     def run_shot(self, shot_id: int | None = None) -> ShotRecord:
         """Run one shot: load (simulated lab), then cycles until success, unsolvable or max_cycles."""
@@ -134,7 +175,7 @@ class Engine:
                 if outcome is not None:
                     record.outcome = outcome
                     break
-        except (DeviceError, RuntimeError, ValueError) as err:
+        except Exception as err:  # a device, the solver or a bug: the shot ends, the engine lives on
             record.outcome = Outcome.FAULT
             record.fault = f"{type(err).__name__}: {err}"
             self._hold_atoms()
@@ -220,6 +261,7 @@ class EngineThread:
         self._ready = threading.Event()
         self._listeners: list[Callable[[ShotRecord], None]] = []
         self._error: BaseException | None = None
+        self.last_error: Exception | None = None  # why continuous shots stopped by themselves, if they did
         self.engine: Engine | None = None
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
@@ -285,7 +327,11 @@ class EngineThread:
         engine = self.engine
         while True:
             if self._continuous.is_set() and self._commands.empty():
-                self._shot(engine)
+                try:
+                    self._shot(engine)
+                except Exception as err:  # a listener failed: stop running, keep the thread alive
+                    self._continuous.clear()
+                    self.last_error = err
                 continue
             item = self._commands.get()
             if item is None:

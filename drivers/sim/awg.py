@@ -62,7 +62,8 @@ class SimAWG:
     """Implements ``engine.devices.SequenceAWG`` against a simulated ``World`` and ``Clock``.
 
     Fault knobs (python-microscope style; set them as attributes): ``fail_next_upload`` (the next
-    ``write_segment`` raises ``DeviceError`` without writing), ``upload_delay_s`` (extra time added to every
+    ``write_segment`` raises ``DeviceError`` without writing), ``fail_uploads`` (every one does, until
+    cleared), ``upload_delay_s`` (extra time added to every
     upload), ``step_write_delay_s`` (extra time added to every step write).
     """
 
@@ -82,6 +83,7 @@ class SimAWG:
         seed = config.sim.seed
         self.rng = rng if rng is not None else np.random.default_rng(None if seed is None else seed + 7919)
         self.fail_next_upload = False
+        self.fail_uploads = False
         self.upload_delay_s = 0.0
         self.step_write_delay_s = 0.0
         self.uploads = 0
@@ -153,9 +155,9 @@ class SimAWG:
                     f"sim AWG: segment {index} ({samples.nbytes} B) does not fit: {used} B of "
                     f"{self.awg_config.max_memory_bytes} B already used"
                 )
-            if self.fail_next_upload:
+            if self.fail_next_upload or self.fail_uploads:
                 self.fail_next_upload = False
-                raise DeviceError(f"sim AWG: injected upload failure (segment {index})")
+                raise DeviceError(f"sim AWG: injected upload failure (segment {index}): the DMA transfer was refused")
             t_begin = self.clock.now_s()
             seg = _Segment(samples.copy(), t_begin, t_begin)
             with self.clock.paused():  # the simulator's decoding is not the card's time

@@ -161,7 +161,8 @@ class SimCamera:
     ``atoms()`` is called at ``trigger()`` (the start of the exposure) and must return the static-trap
     occupancy ``bool[ny, nx]``; the frame is rendered when it is read. Set ``fail_next_read`` to
     ``"timeout"`` (no frame arrives) or ``"corrupt"`` (the grabber reports a torn transfer) to make the next
-    ``read`` fail with ``DeviceError``; the knob clears itself once used.
+    ``read`` fail with ``DeviceError``; the knob clears itself once used. ``fault`` does the same for every
+    read until it is set back to None.
     """
 
     def __init__(
@@ -177,6 +178,7 @@ class SimCamera:
         self._clock = clock
         self._rng = rng
         self._fail_next_read: FaultKind | None = None
+        self.fault: FaultKind | None = None
         self._frame_index = -1
         self._t_exposure_start_s: float | None = None
         self._occupancy = np.zeros((config.array.ny, config.array.nx), dtype=bool)
@@ -200,6 +202,12 @@ class SimCamera:
         if kind not in (None, "timeout", "corrupt"):
             raise ValueError(f"fail_next_read must be None, 'timeout' or 'corrupt' (got {kind!r})")
         self._fail_next_read = kind
+
+    def set_system_config(self, config: SystemConfig) -> None:
+        """Adopt a new system configuration (array size and geometry included); between shots only."""
+        self._system = config
+        self._occupancy = np.zeros((config.array.ny, config.array.nx), dtype=bool)
+        self.configure(config.camera)
 
     def configure(self, config: CameraConfig) -> None:
         """Apply new camera settings; the trap geometry must still fit the ROI (validated like a config load)."""
@@ -236,7 +244,7 @@ class SimCamera:
                 "(on hardware: check that the AWG's camera trigger line reaches the EMCCD)"
             )
         self._t_exposure_start_s = None  # the frame is consumed whatever happens next
-        fault, self._fail_next_read = self._fail_next_read, None
+        fault, self._fail_next_read = self._fail_next_read or self.fault, None
         t_ready_s = t0 + self._readout.total_s
         if fault == "timeout" or t_ready_s - self._clock.now_s() > timeout_s:
             self._clock.advance(timeout_s)

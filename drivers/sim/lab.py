@@ -22,9 +22,20 @@ __all__ = ["SimLab", "build_sim_lab"]
 class SimLab:
     """Lab hooks for the engine (see ``engine.engine.Lab``) plus access to the world for tests."""
 
-    def __init__(self, world: World, awg: SimAWG) -> None:
+    def __init__(self, world: World, awg: SimAWG, camera: SimCamera) -> None:
         self.world = world
         self.awg = awg
+        self.camera = camera
+
+    def configure(self, config: SystemConfig) -> None:
+        """Adopt a configuration the engine is applying: array, tones, loss model and injected faults."""
+        self.world.reconfigure(config)
+        self.camera.set_system_config(config)
+        self.awg.set_system_config(config)
+        faults = config.sim.faults
+        self.camera.fault = None if faults.camera == "none" else faults.camera
+        self.awg.fail_uploads = faults.awg_upload == "fail"
+        self.awg.upload_delay_s = faults.upload_delay_s
 
     def prepare_shot(self) -> None:
         """Throw away the previous atoms and load a fresh array (Bernoulli per trap)."""
@@ -48,4 +59,6 @@ def build_sim_lab(config: SystemConfig) -> tuple[DeviceSet, SimLab]:
         return world.occupancy()
 
     camera = SimCamera(config, atoms=atoms_now, clock=clock, rng=np.random.default_rng(camera_seed))
-    return DeviceSet(camera=camera, awg=awg, clock=clock), SimLab(world, awg)
+    lab = SimLab(world, awg, camera)
+    lab.configure(config)
+    return DeviceSet(camera=camera, awg=awg, clock=clock), lab

@@ -70,9 +70,16 @@ class World:
         rng: np.random.Generator | None = None,
         lossless: bool | None = None,
     ) -> None:
+        self.clock = clock
+        self.rng = rng if rng is not None else np.random.default_rng(config.sim.seed)
+        self.counters = WorldCounters()
+        self.nx = self.ny = 0
+        self.reconfigure(config, lossless=lossless)
+        self._t_s = clock.now_s() if clock is not None else 0.0
+
+    def reconfigure(self, config: SystemConfig, *, lossless: bool | None = None) -> None:
+        """Adopt the array and loss model of ``config``; a new array size starts empty (between shots only)."""
         arr = config.array
-        self.nx = arr.nx
-        self.ny = arr.ny
         self.trap_source = arr.trap_source
         sim = config.sim
         self.loading_probability = sim.loading_probability
@@ -80,12 +87,10 @@ class World:
         self.survival_step = sim.survival_step
         self.vacuum_lifetime_s = sim.vacuum_lifetime_s
         self.lossless = sim.lossless if lossless is None else lossless
-        self.clock = clock
-        self.rng = rng if rng is not None else np.random.default_rng(sim.seed)
-        self.counters = WorldCounters()
-        self._static = np.zeros((self.ny, self.nx), dtype=bool)
-        self._held = np.zeros((self.ny, self.nx), dtype=bool)  # atoms in tweezers, at the tweezer's site
-        self._t_s = clock.now_s() if clock is not None else 0.0
+        if (arr.ny, arr.nx) != (self.ny, self.nx):
+            self.nx, self.ny = arr.nx, arr.ny
+            self._static = np.zeros((self.ny, self.nx), dtype=bool)
+            self._held = np.zeros((self.ny, self.nx), dtype=bool)  # atoms in tweezers, at the tweezer's site
 
     # --- state -----------------------------------------------------------------------------------------
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import html
+import json
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
@@ -19,13 +20,30 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from engine.config import SystemConfig
 from server.hub import LiveHub, cycle_messages
-from server.models import ErrorOut, RunStateOut, ShotList, ShotOut, ShotRequest, StatusOut, shot_out, shot_summary
+from server.models import (
+    ArmOut,
+    ArmRequest,
+    CalibrationApplyOut,
+    CalibrationApplyRequest,
+    CalibrationRequest,
+    ErrorOut,
+    PsfCalibrationOut,
+    RunStateOut,
+    ShotList,
+    ShotOut,
+    ShotRequest,
+    StatusOut,
+    ThresholdCalibrationOut,
+    shot_out,
+    shot_summary,
+)
 from server.png import encode_png
-from server.service import ConfigRejected, LabService
+from server.service import CalibrationConflict, ConfigRejected, LabService, NotArmed
 
 __all__ = ["create_app"]
 
@@ -38,6 +56,17 @@ _BODY_ERRORS: dict[int | str, dict[str, Any]] = {
     422: {**_ERR, "description": "invalid input: `detail` names each field and why; nothing was changed"},
 }
 _AUTH_ERRORS: dict[int | str, dict[str, Any]] = {401: _BODY_ERRORS[401]}
+_CONFLICT: dict[int | str, dict[str, Any]] = {409: {**_ERR, "description": "not possible in the present state; `detail` says why"}}
+_CALIBRATION = Annotated[ThresholdCalibrationOut | PsfCalibrationOut, Field(discriminator="kind")]
+
+
+async def _json_body(request: Request) -> Any:
+    """The request body as JSON (400 if it is not JSON), for routes that validate it themselves."""
+    try:
+        return json.loads(await request.body())
+    except ValueError as err:
+        raise HTTPException(400, detail=f"request body is not valid JSON: {err}") from None
+
 _NOT_FOUND: dict[int | str, dict[str, Any]] = {
     404: {**_ERR, "description": "no such shot held by the server"},
     422: {**_ERR, "description": "invalid path or query parameter"},
@@ -142,9 +171,19 @@ def create_app(
         response_model=SystemConfig,
         dependencies=auth,
         responses=body_errors,
-        summary="Replace the whole configuration (validated; applied between shots)",
+        summary="Replace the whole configuration (validated strictly: no type coercion; applied between shots)",
+        openapi_extra={
+            "requestBody": {
+                "required": True,
+                "content": {"application/json": {"schema": {"$ref": "#/components/schemas/SystemConfig"}}},
+            }
+        },
     )
-    def put_config(config: SystemConfig) -> SystemConfig:
+    def put_config(config: Annotated[Any, Depends(_json_body)]) -> SystemConfig:
+        if not isinstance(config, dict):
+            raise HTTPException(
+                422, detail=[{"loc": ["body"], "msg": "expected a JSON object (the whole configuration)", "type": "dict_type"}]
+            )
         try:
             return service.replace_config(config)
         except ConfigRejected as err:
@@ -189,6 +228,92 @@ def create_app(
     def stop() -> RunStateOut:
         service.stop()
         return RunStateOut(running=service.running, pause_s=service.pause_s)
+
+    @app.post(
+        "/api/arm",
+        response_model=ArmOut,
+        dependencies=auth,
+        responses={**body_errors, **_CONFLICT},
+        summary="Stop continuous shots and wait for the sequencer's trigger (POST /api/trigger, or the hardware line)",
+    )
+    def arm(request: Annotated[ArmRequest | None, Body()] = None) -> ArmOut:
+        try:
+            service.arm(shots=request.shots if request is not None else None)
+        except NotArmed as err:
+            raise HTTPException(409, detail=str(err)) from None
+        return ArmOut(armed=service.armed, trigger=service.trigger_source, shots_left=service.armed_shots_left)  # type: ignore[arg-type]
+
+    @app.post(
+        "/api/trigger",
+        response_model=ShotOut,
+        dependencies=auth,
+        responses={**auth_errors, **_CONFLICT},
+        summary="The sequencer's software trigger: run one shot now (only while armed) and return its record",
+    )
+    def trigger() -> ShotOut:
+        try:
+            return shot_out(service.trigger())
+        except NotArmed as err:
+            raise HTTPException(409, detail=str(err)) from None
+
+    def calibration(kind: str, run: Any, request: CalibrationRequest | None) -> dict[str, Any]:
+        try:
+            return run(images=(request or CalibrationRequest()).images)
+        except ValueError as err:  # the frames could not be fitted (e.g. no atoms loaded)
+            raise HTTPException(409, detail=f"{kind} calibration failed: {err}") from None
+
+    @app.post(
+        "/api/calibrate/threshold",
+        response_model=ThresholdCalibrationOut,
+        dependencies=auth,
+        responses={**body_errors, **_CONFLICT},
+        summary="Acquire fresh frames and fit the occupancy threshold; returns the fit and its fidelity, "
+        "applies nothing (see POST /api/calibrate/apply)",
+    )
+    def calibrate_threshold(request: Annotated[CalibrationRequest | None, Body()] = None) -> dict[str, Any]:
+        return calibration("threshold", service.calibrate_threshold, request)
+
+    @app.post(
+        "/api/calibrate/psf",
+        response_model=PsfCalibrationOut,
+        dependencies=auth,
+        responses={**body_errors, **_CONFLICT},
+        summary="Acquire fresh frames and fit the PSF and trap lattice; returns the fit and the detection "
+        "fidelity with it and with the PSF in use, applies nothing (see POST /api/calibrate/apply)",
+    )
+    def calibrate_psf(request: Annotated[CalibrationRequest | None, Body()] = None) -> dict[str, Any]:
+        return calibration("psf", service.calibrate_psf, request)
+
+    @app.get(
+        "/api/calibrate",
+        response_model=list[_CALIBRATION],
+        summary="Calibrations held by the server (newest last), applied or not",
+    )
+    def calibrations() -> list[dict[str, Any]]:
+        return service.calibrations()
+
+    @app.post(
+        "/api/calibrate/apply",
+        response_model=CalibrationApplyOut,
+        dependencies=auth,
+        responses={
+            **body_errors,
+            404: {**_ERR, "description": "no calibration with that id"},
+            409: {**_ERR, "description": "the configuration changed since the calibration's frames were taken"},
+        },
+        summary="Put a calibration's values into the running configuration (an ordinary config change, "
+        "applied between shots and recorded with every later shot)",
+    )
+    def apply_calibration(request: CalibrationApplyRequest) -> CalibrationApplyOut:
+        try:
+            applied = service.apply_calibration(request.id)
+        except KeyError:
+            raise HTTPException(404, detail=f"no calibration {request.id!r}") from None
+        except CalibrationConflict as err:
+            raise HTTPException(409, detail=str(err)) from None
+        except ConfigRejected as err:
+            raise rejected(err) from None
+        return CalibrationApplyOut(applied=applied, config_digest=service.config.digest())  # type: ignore[arg-type]
 
     @app.post(
         "/api/shots",

@@ -8,12 +8,19 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from engine.records import ShotRecord
 
 __all__ = [
+    "ArmOut",
+    "ArmRequest",
+    "CalibrationApplyOut",
+    "CalibrationApplyRequest",
+    "CalibrationRequest",
     "CycleOut",
+    "PsfCalibrationOut",
+    "ThresholdCalibrationOut",
     "DevicesOut",
     "ErrorItem",
     "ErrorOut",
@@ -27,6 +34,12 @@ __all__ = [
     "shot_out",
     "shot_summary",
 ]
+
+
+class _Request(BaseModel):
+    """A request body: unknown fields are refused (a misspelt option must not be silently ignored)."""
+
+    model_config = ConfigDict(extra="forbid")
 
 
 class ErrorItem(BaseModel):
@@ -90,7 +103,7 @@ class ShotList(BaseModel):
     shots: list[ShotSummary] = Field(description="newest first")
 
 
-class ShotRequest(BaseModel):
+class ShotRequest(_Request):
     """``POST /api/shots`` body (optional): a partial configuration used for this one shot only."""
 
     config: dict[str, Any] | None = Field(
@@ -104,10 +117,33 @@ class RunStateOut(BaseModel):
     pause_s: float = Field(description="pause between continuous shots")
 
 
+class ArmRequest(_Request):
+    """``POST /api/arm`` body (optional)."""
+
+    shots: int | None = Field(
+        default=None, ge=1, le=1_000_000, description="disarm after this many triggered shots; null: stay armed until stop"
+    )
+
+
+class ArmOut(BaseModel):
+    armed: bool
+    trigger: Literal["rest", "hardware"] = Field(
+        description="what starts a shot while armed: 'rest' = POST /api/trigger, 'hardware' = the sequencer's "
+        "trigger line (loop.trigger: hardware, on devices that have one)"
+    )
+    shots_left: int | None = Field(description="triggered shots before the server disarms; null: until stop")
+
+
 class StatusOut(BaseModel):
-    state: Literal["idle", "running", "fault"]
+    state: Literal["idle", "armed", "running", "fault"] = Field(
+        description="idle: waiting for a command; armed: waiting for a trigger; running: a shot or a calibration "
+        "is in progress or continuous shots are on; fault: a device failed (see reason), shots stopped"
+    )
     reason: str | None = Field(default=None, description="why the state is 'fault'")
+    activity: str | None = Field(default=None, description="what the engine is doing now, in words")
     running: bool = Field(description="continuous shots requested")
+    armed: bool = Field(default=False, description="waiting for the sequencer's trigger (POST /api/arm)")
+    trigger: Literal["rest", "hardware"] = "rest"
     pause_s: float
     devices: DevicesOut
     config_name: str
@@ -165,3 +201,64 @@ def shot_out(record: ShotRecord) -> ShotOut:
         cycles=[CycleOut(**c) for c in data["cycles"]],
         truth=data["truth"],
     )
+
+
+class CalibrationRequest(_Request):
+    """Body of ``POST /api/calibrate/threshold`` and ``/psf`` (optional)."""
+
+    images: int = Field(
+        default=40,
+        ge=5,
+        le=500,
+        description="fresh frames to acquire (in the simulated lab each one is a newly loaded array)",
+    )
+
+
+class _CalibrationBase(BaseModel):
+    id: str = Field(description="pass to POST /api/calibrate/apply to put these values into the running config")
+    images: int = Field(description="frames the fit used")
+    config_digest: str = Field(description="configuration the frames were taken under; apply refuses another")
+    applied: bool = False
+    apply_patch: dict[str, Any] = Field(description="the config change POST /api/calibrate/apply would make")
+
+
+class ThresholdCalibrationOut(_CalibrationBase):
+    """A two-population fit of per-trap weighted sums and its minimum-error threshold (not yet applied)."""
+
+    kind: Literal["threshold"] = "threshold"
+
+    threshold: float = Field(description="fitted threshold (counts, weighted sum per trap)")
+    fidelity: float = Field(description="1 - P(wrong assignment) at the fitted threshold, under the fit")
+    current_threshold: float = Field(description="threshold in use now (mean over traps if per trap)")
+    current_fidelity: float = Field(description="the same fidelity estimate for the threshold in use now")
+    fraction_filled: float
+    mean_empty: float
+    mean_atom: float
+    std_empty: float
+    std_atom: float
+
+
+class PsfCalibrationOut(_CalibrationBase):
+    """A PSF fitted from frames: shared sigma, trap centres, and the trap lattice they imply (not yet applied)."""
+
+    kind: Literal["psf"] = "psf"
+
+    sigma_px: float = Field(description="fitted Gaussian sigma (sensor pixels)")
+    current_sigma_px: float
+    origin_px: tuple[float, float] = Field(description="fitted (x, y) of trap (row 0, col 0), sensor pixels")
+    col_step_px: tuple[float, float]
+    row_step_px: tuple[float, float]
+    lattice_rms_px: float = Field(description="rms distance of the fitted centres from the fitted lattice")
+    max_shift_px: float = Field(description="largest move of a trap centre from its configured position")
+    traps_fitted: int = Field(description="traps that held an atom in at least one frame")
+    fidelity: float = Field(description="detection fidelity of these frames with the fitted PSF's weights")
+    current_fidelity: float = Field(description="the same with the PSF in use now")
+
+
+class CalibrationApplyRequest(_Request):
+    id: str = Field(description="a calibration id returned by POST /api/calibrate/threshold or /psf")
+
+
+class CalibrationApplyOut(BaseModel):
+    applied: ThresholdCalibrationOut | PsfCalibrationOut = Field(discriminator="kind")
+    config_digest: str = Field(description="digest of the configuration now running")

@@ -7,24 +7,39 @@ changes applied between shots, the shot history in memory and on disk, and liste
 Every command to the engine is sent under one lock, so that the commands of one request (apply an override,
 run the shot, restore the config) are never interleaved with another request's or with the continuous runner's.
 Shots run strictly one after another: two callers asking for a shot at once get two consecutive shots.
+
+States (``status().state``): ``idle``; ``armed`` (waiting for the sequencer's trigger: ``trigger()`` over REST,
+or the devices' hardware trigger line when ``loop.trigger`` is ``hardware``); ``running`` (continuous shots,
+or a shot or calibration in progress); ``fault`` (a device failed; continuous shots stopped, the reason kept
+until a person starts shots again).
+
+Calibration acquires fresh frames through the engine, fits a threshold or a PSF (``server.calibration``) and
+keeps the result under an id without applying it; ``apply_calibration(id)`` turns it into an ordinary config
+change, refused if the configuration changed since the frames were taken.
 """
 
 from __future__ import annotations
 
+import itertools
+import json
 import threading
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from pydantic import ValidationError
 
 from engine.config import SystemConfig
-from engine.engine import EngineThread
 from engine.records import Outcome, ShotRecord
+from server.calibration import psf_calibration, threshold_calibration
 from server.models import DevicesOut, StatusOut, shot_summary
 from server.runstore import RunStore
 
-__all__ = ["ConfigRejected", "LabService", "deep_merge"]
+if TYPE_CHECKING:
+    from engine.engine import EngineThread
+
+__all__ = ["CalibrationConflict", "ConfigRejected", "LabService", "NotArmed", "deep_merge"]
 
 
 class ConfigRejected(ValueError):
@@ -33,6 +48,14 @@ class ConfigRejected(ValueError):
     def __init__(self, errors: list[dict[str, Any]]) -> None:
         super().__init__("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors))
         self.errors = errors
+
+
+class NotArmed(RuntimeError):
+    """A trigger arrived while the server was not armed (or an arm the devices cannot honour)."""
+
+
+class CalibrationConflict(RuntimeError):
+    """A calibration cannot be applied: the configuration changed since its frames were taken."""
 
 
 def deep_merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
@@ -50,9 +73,13 @@ def deep_merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
 
 
 def _validate(data: Any) -> SystemConfig:
+    """Validate JSON-shaped ``data`` strictly: ``"lossless": 0`` or ``"max_cycles": "5"`` are refused, not coerced
+    (a lab config is typed by a person; a silent coercion would hide a typo)."""
     try:
-        return SystemConfig.model_validate(data)
-    except ValidationError as err:
+        return SystemConfig.model_validate_json(json.dumps(data, allow_nan=False), strict=True)
+    except ValueError as err:
+        if not isinstance(err, ValidationError):  # NaN or infinity somewhere
+            raise ConfigRejected([{"loc": ["body"], "msg": f"not valid JSON: {err}", "type": "json_invalid"}]) from None
         raise ConfigRejected(
             [{"loc": ["body", *e["loc"]], "msg": e["msg"], "type": e["type"]} for e in err.errors()]
         ) from None
@@ -80,9 +107,15 @@ class LabService:
         self._successes = 0
         self._truth_successes: int | None = None
         self._fault: str | None = None
-        self._busy = 0
+        self._activity: list[str] = []
+        self._armed = False
+        self._armed_shots_left: int | None = None
+        self._last_frame: tuple[int, np.ndarray] | None = None
+        self._calibrations: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        self._calibration_ids = itertools.count(1)
         self._listeners: list[Callable[[ShotRecord], None]] = []
         self._want_run = threading.Event()
+        self._wake = threading.Event()  # the runner has something to do (or must exit)
         self._closing = threading.Event()
         self._config: SystemConfig | None = None
         self._runner = threading.Thread(target=self._run_loop, name="llrs-runner", daemon=True)
@@ -91,7 +124,6 @@ class LabService:
 
     def start(self, *, run: bool = False) -> LabService:
         """Build the engine (compiles every kernel), then start the runner; ``run`` starts continuous shots."""
-        self._et.add_listener(self._on_shot)
         self._et.start()
         engine = self._et.engine
         assert engine is not None
@@ -106,8 +138,10 @@ class LabService:
     def close(self) -> None:
         """Stop shots, the runner, the engine (closing its devices) and the run store."""
         self._want_run.clear()
+        with self._state_lock:
+            self._armed = False
         self._closing.set()
-        self._want_run.set()  # wake the runner so it sees _closing
+        self._wake.set()  # so the runner sees _closing
         if self._runner.is_alive():
             self._runner.join(timeout=30)
         self._et.close()
@@ -144,18 +178,66 @@ class LabService:
         return new
 
     def run(self) -> None:
-        """Start continuous shots (a pause of ``pause_s`` between them)."""
+        """Start continuous shots (a pause of ``pause_s`` between them); disarms a waiting trigger."""
         with self._state_lock:
             self._fault = None
+            self._armed = False
         self._want_run.set()
+        self._wake.set()
 
     def stop(self) -> None:
-        """Stop after the shot in progress."""
+        """Stop after the shot in progress, and disarm."""
         self._want_run.clear()
+        with self._state_lock:
+            self._armed = False
+            self._armed_shots_left = None
 
     @property
     def running(self) -> bool:
         return self._want_run.is_set() and not self._closing.is_set()
+
+    @property
+    def trigger_source(self) -> str:
+        """What starts a shot while armed: ``"hardware"`` (``loop.trigger: hardware``) or ``"rest"``."""
+        return "hardware" if self.config.loop.trigger == "hardware" else "rest"
+
+    def arm(self, *, shots: int | None = None) -> None:
+        """Stop continuous shots and wait for the sequencer's trigger; each trigger runs one shot.
+
+        ``shots``: disarm after that many triggered shots (``None``: stay armed until ``stop``). With
+        ``loop.trigger: hardware`` the devices must have a trigger input (``engine.wait_trigger``); otherwise
+        ``NotArmed`` says so and nothing changes.
+        """
+        if self.trigger_source == "hardware" and not hasattr(self._et.engine, "wait_trigger"):
+            raise NotArmed(
+                "loop.trigger is 'hardware' but these devices have no trigger input; "
+                "set loop.trigger to 'software' and send POST /api/trigger"
+            )
+        self._want_run.clear()
+        with self._state_lock:
+            self._fault = None
+            self._armed = True
+            self._armed_shots_left = shots
+        self._wake.set()
+
+    @property
+    def armed(self) -> bool:
+        with self._state_lock:
+            return self._armed
+
+    @property
+    def armed_shots_left(self) -> int | None:
+        with self._state_lock:
+            return self._armed_shots_left
+
+    def trigger(self) -> ShotRecord:
+        """The sequencer's software trigger: run one shot now (after the one in progress) if armed.
+
+        Raises ``NotArmed`` otherwise. Triggers are serialized like every shot.
+        """
+        with self._lock:
+            self._take_trigger()
+            return self._one_shot("triggered shot")
 
     def shot(self, *, override: dict[str, Any] | None = None) -> ShotRecord:
         """Run one shot now (after the one in progress) and return its record.
@@ -164,14 +246,64 @@ class LabService:
         """
         with self._lock:
             if not override:
-                return self._one_shot()
+                return self._one_shot("one shot")
             base = self.config
             special = _validate(deep_merge(base.model_dump(mode="json"), override))
             self._apply(special, remember=False)
             try:
-                return self._one_shot()
+                return self._one_shot("one shot (config override)")
             finally:
                 self._apply(base)
+
+    # -- calibration ------------------------------------------------------------------------------------------
+
+    def acquire_images(self, n: int) -> np.ndarray:
+        """``uint16[n, h, w]`` fresh frames from the engine's camera (between shots)."""
+        with self._lock:
+            return self._acquire(n, "acquiring frames")
+
+    def calibrate_threshold(self, *, images: int = 40) -> dict[str, Any]:
+        """Acquire ``images`` frames and fit the occupancy threshold; kept under an id, not applied."""
+        with self._lock:
+            config = self.config
+            frames = self._acquire(images, f"calibrating the threshold ({images} frames)")
+        return self._keep_calibration(threshold_calibration(frames, config), config)
+
+    def calibrate_psf(self, *, images: int = 40) -> dict[str, Any]:
+        """Acquire ``images`` frames and fit the PSF and trap lattice; kept under an id, not applied."""
+        with self._lock:
+            config = self.config
+            frames = self._acquire(images, f"calibrating the PSF ({images} frames)")
+        return self._keep_calibration(psf_calibration(frames, config), config)
+
+    def calibrations(self) -> list[dict[str, Any]]:
+        """Calibrations held (newest last)."""
+        with self._state_lock:
+            return [dict(c) for c in self._calibrations.values()]
+
+    def apply_calibration(self, calibration_id: str) -> dict[str, Any]:
+        """Put a calibration's values into the running configuration (applied between shots).
+
+        ``KeyError``: no such id. ``CalibrationConflict``: the configuration changed since its frames were
+        taken (calibrate again). Applying one that is already applied changes nothing.
+        """
+        with self._lock:
+            with self._state_lock:
+                cal = self._calibrations.get(calibration_id)
+                if cal is None:
+                    raise KeyError(calibration_id)
+                if cal["applied"]:
+                    return dict(cal)
+            if cal["config_digest"] != self.config.digest():
+                raise CalibrationConflict(
+                    f"calibration {calibration_id} was fitted under configuration {cal['config_digest']}, "
+                    f"but {self.config.digest()} is running now; calibrate again"
+                )
+            new = _validate(deep_merge(self.config.model_dump(mode="json"), cal["apply_patch"]))
+            self._apply(new)
+            with self._state_lock:
+                cal["applied"] = True
+                return dict(cal)
 
     # -- queries ----------------------------------------------------------------------------------------------
 
@@ -189,26 +321,33 @@ class LabService:
         cfg = self.config
         with self._state_lock:
             last = self._history[-1] if self._history else None
-            shots, successes, truth, fault, busy = (
-                self._shots,
-                self._successes,
-                self._truth_successes,
-                self._fault,
-                self._busy,
-            )
+            shots, successes, truth, fault = self._shots, self._successes, self._truth_successes, self._fault
+            activity = self._activity[-1] if self._activity else None
+            armed = self._armed
         if fault is not None:
             state = "fault"
-        elif self.running or busy:
+        elif self.running or activity is not None:
             state = "running"
+        elif armed:
+            state = "armed"
         else:
             state = "idle"
+        if activity is None and armed:
+            activity = "waiting for the trigger"
         run_file = self._store.current_path if self._store is not None else None
         return StatusOut(
             state=state,
             reason=fault,
+            activity=activity,
             running=self.running,
+            armed=armed,
+            trigger=self.trigger_source,  # type: ignore[arg-type]
             pause_s=self.pause_s,
-            devices=DevicesOut(camera=cfg.devices.camera, awg=cfg.devices.awg, time=cfg.sim.time),
+            devices=DevicesOut(
+                camera=cfg.devices.camera,
+                awg=cfg.devices.awg,
+                time=cfg.sim.time if cfg.devices.camera == "sim" or cfg.devices.awg == "sim" else "hardware",
+            ),
             config_name=cfg.name,
             config_digest=cfg.digest(),
             shots_done=shots,
@@ -223,6 +362,12 @@ class LabService:
         with self._state_lock:
             return self._history[-1] if self._history else None
 
+    def last_frame(self) -> tuple[int, np.ndarray] | None:
+        """``(shot_id, uint16[h, w])``: the last camera frame of the latest shot (the final state), if the engine
+        offers it. The array is the service's own copy; do not modify it."""
+        with self._state_lock:
+            return self._last_frame
+
     # -- internals --------------------------------------------------------------------------------------------
 
     def _apply(self, config: SystemConfig, *, remember: bool = True) -> None:
@@ -236,16 +381,63 @@ class LabService:
         if remember:
             self._config = config
 
-    def _one_shot(self) -> ShotRecord:
+    def _take_trigger(self) -> None:
+        """Consume one armed trigger (``NotArmed`` if there is none)."""
         with self._state_lock:
-            self._busy += 1
-        try:
-            return self._et.run_shots(1).result()[0]
-        finally:
-            with self._state_lock:
-                self._busy -= 1
+            if not self._armed:
+                raise NotArmed("not armed: POST /api/arm first")
+            if self._armed_shots_left is not None:
+                self._armed_shots_left -= 1
+                if self._armed_shots_left <= 0:
+                    self._armed, self._armed_shots_left = False, None
 
-    def _on_shot(self, record: ShotRecord) -> None:
+    def _busy(self, what: str) -> Callable[[], None]:
+        with self._state_lock:
+            self._activity.append(what)
+
+        def done() -> None:
+            with self._state_lock:
+                self._activity.remove(what)
+
+        return done
+
+    def _acquire(self, n: int, what: str) -> np.ndarray:
+        done = self._busy(what)
+        try:
+            frames = self._et.submit(lambda engine: engine.acquire_images(n)).result()
+        finally:
+            done()
+        return np.asarray(frames)
+
+    def _keep_calibration(self, result: dict[str, Any], config: SystemConfig) -> dict[str, Any]:
+        result = {
+            "id": f"{result['kind']}-{next(self._calibration_ids)}",
+            "config_digest": config.digest(),
+            "applied": False,
+            **result,
+        }
+        with self._state_lock:
+            self._calibrations[result["id"]] = result
+            while len(self._calibrations) > 32:
+                self._calibrations.popitem(last=False)
+            return dict(result)
+
+    def _one_shot(self, what: str) -> ShotRecord:
+        done = self._busy(what)
+        try:
+            return self._et.submit(self._shot_on_engine).result()
+        finally:
+            done()
+
+    def _shot_on_engine(self, engine: Any) -> ShotRecord:
+        """On the engine thread: one shot, its last frame, then the bookkeeping and the listeners."""
+        record = engine.run_shot()
+        last_frame = getattr(engine, "last_frame", None)
+        frame = last_frame() if last_frame is not None else None
+        self._on_shot(record, frame)
+        return record
+
+    def _on_shot(self, record: ShotRecord, frame: np.ndarray | None = None) -> None:
         with self._state_lock:
             if len(self._history) == self._history.maxlen:
                 self._by_id.pop(self._history[0].shot_id, None)
@@ -257,23 +449,45 @@ class LabService:
             if filled is not None:
                 self._truth_successes = (self._truth_successes or 0) + bool(filled)
             self._fault = record.fault if record.outcome is Outcome.FAULT else None
+            if frame is not None:
+                self._last_frame = (record.shot_id, frame)
         if self._store is not None:
             self._store.put(record)
         for listener in list(self._listeners):
-            listener(record)
+            try:
+                listener(record)
+            except Exception:  # a broken listener (a closed dashboard) must never stop the engine
+                pass
+
+    def _wait_hardware_trigger(self) -> bool:
+        """Armed on a hardware trigger: wait a little for the line on the engine thread; True if it fired."""
+        fired = self._et.submit(lambda engine: engine.wait_trigger(timeout_s=0.2)).result()
+        return bool(fired)
 
     def _run_loop(self) -> None:
-        while True:
-            self._want_run.wait()
-            if self._closing.is_set():
-                return
+        while not self._closing.is_set():
+            if not self._want_run.is_set() and not (self.armed and self.trigger_source == "hardware"):
+                self._wake.wait()
+                self._wake.clear()
+                continue
             with self._lock:
-                if self._want_run.is_set() and not self._closing.is_set():
-                    try:
-                        if self._one_shot().outcome is Outcome.FAULT:
+                if self._closing.is_set():
+                    return
+                try:
+                    if self._want_run.is_set():
+                        if self._one_shot("continuous shots").outcome is Outcome.FAULT:
                             self._want_run.clear()  # a device failed: hold the atoms, let a person look
-                    except Exception as err:  # the engine thread died or raised: stop and report it
-                        with self._state_lock:
-                            self._fault = f"{type(err).__name__}: {err}"
-                        self._want_run.clear()
-            self._closing.wait(self.pause_s)
+                    elif self.armed and self.trigger_source == "hardware" and self._wait_hardware_trigger():
+                        self._take_trigger()
+                        self._one_shot("triggered shot (hardware)")
+                    else:
+                        continue  # nothing fired: look again at once (the wait itself paced us)
+                except NotArmed:
+                    continue
+                except Exception as err:  # the engine thread died or raised: stop and report it
+                    with self._state_lock:
+                        self._fault = f"{type(err).__name__}: {err}"
+                        self._armed = False
+                    self._want_run.clear()
+            if self._want_run.is_set():
+                self._closing.wait(self.pause_s)

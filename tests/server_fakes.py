@@ -1,8 +1,9 @@
 """A stand-in engine for the server tests: the real ``EngineThread`` around an engine that fakes shots in microseconds.
 
-The server's contract with the engine is small (``config``, ``apply``, ``run_shot``, ``devices.close``); faking
-it keeps the API tests fast and lets them provoke what the simulated lab rarely does (a refused config, a fault,
-kept images, a slow shot).
+The server's contract with the engine is small (``config``, ``apply``, ``run_shot``, ``acquire_images``,
+``last_frame``, ``devices.close``); faking it keeps the API tests fast and lets them provoke what the simulated
+lab rarely does (a refused config, a fault, kept images, a slow shot, optics that differ from the config).
+Calibration frames are real simulated EMCCD frames (``drivers.sim.camera.SimCamera``).
 """
 
 from __future__ import annotations
@@ -40,8 +41,18 @@ class FakeEngine:
     as the real engine does for a solver it does not know.
     """
 
-    def __init__(self, config: SystemConfig, *, shot_s: float = 0.0, keep_images: bool = False) -> None:
+    def __init__(
+        self,
+        config: SystemConfig,
+        *,
+        shot_s: float = 0.0,
+        keep_images: bool = False,
+        optics: dict | None = None,
+    ) -> None:
         self.devices = _Devices()
+        self.optics = optics or {}  # camera fields where the (simulated) truth differs from the config
+        self._camera = None
+        self._last_frame: np.ndarray | None = None
         self.shots_done = 0
         self.shot_s = shot_s
         self.keep_images = keep_images
@@ -102,7 +113,31 @@ class FakeEngine:
             )
         if self.keep_images:
             record.images = [np.full((16, 64), 500 + 100 * i, dtype=np.uint16) for i in range(len(states))]
+            self._last_frame = record.images[-1]
         record.truth = {"target_filled": record.outcome is Outcome.SUCCESS}
         record.duration_s = 0.05
         self.shots_done += 1
         return record
+
+    def last_frame(self) -> np.ndarray | None:
+        return self._last_frame
+
+    def acquire_images(self, n: int) -> np.ndarray:
+        """``n`` simulated EMCCD frames, each of a freshly loaded array, through optics ``self.optics``."""
+        from drivers.sim.camera import SimCamera
+        from drivers.sim.clock import SimClock
+
+        cfg = self.config
+        truth = cfg.model_copy(update={"camera": cfg.camera.model_copy(update=self.optics)})
+        key = truth.camera.model_dump_json()
+        if self._camera is None or self._camera[0] != key:
+            self._atoms = np.zeros((cfg.array.ny, cfg.array.nx), dtype=bool)
+            camera = SimCamera(truth, atoms=lambda: self._atoms, clock=SimClock("simulated"), rng=np.random.default_rng(7))
+            self._camera = (key, camera)
+        camera = self._camera[1]
+        frames = np.zeros((n, *camera.frame_shape), dtype=np.uint16)
+        for i in range(n):
+            self._atoms[...] = self.rng.random(self._atoms.shape) < cfg.sim.loading_probability
+            camera.trigger()
+            camera.read(frames[i], timeout_s=1.0)
+        return frames

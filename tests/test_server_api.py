@@ -318,3 +318,209 @@ def test_every_shot_lands_in_the_run_file(client: TestClient, lab: tuple[LabServ
         assert '"loading_probability":0.6' in f.attrs["config_json"]
     with h5py.File(files[1], "r", swmr=True) as f:
         assert list(f["shot_id"][:]) == ids[3:]
+
+
+# -- strict config validation -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "patch",
+    [
+        {"sim": {"lossless": 0}},  # a number is not a boolean
+        {"loop": {"max_cycles": "5"}},  # a string is not a number
+        {"camera": {"exposure_s": "0.02"}},
+    ],
+)
+def test_config_is_validated_strictly(client: TestClient, patch: dict) -> None:
+    before = client.get("/api/config").json()
+    r = client.patch("/api/config", json=patch)
+    assert r.status_code == 422, r.text
+    section, field = next(iter(patch.items()))
+    assert any(d["loc"] == ["body", section, next(iter(field))] for d in r.json()["detail"])
+    full = {**before, section: {**before[section], **field}}
+    assert client.put("/api/config", json=full).status_code == 422
+    assert client.get("/api/config").json() == before
+
+
+def test_put_config_not_an_object_or_not_json(client: TestClient) -> None:
+    before = client.get("/api/config").json()
+    assert client.put("/api/config", json=[1]).status_code == 422
+    r = client.put("/api/config", content=b"{nope", headers={"content-type": "application/json"})
+    assert r.status_code == 400 and "not valid JSON" in r.json()["detail"]
+    assert client.get("/api/config").json() == before
+
+
+# -- arm and trigger --------------------------------------------------------------------------------------------
+
+
+def test_trigger_without_arm_is_409_and_runs_nothing(client: TestClient) -> None:
+    r = client.post("/api/trigger")
+    assert r.status_code == 409 and "arm" in r.json()["detail"]
+    assert client.get("/api/status").json()["shots_done"] == 0
+
+
+def test_arm_then_trigger_runs_one_shot_each(client: TestClient) -> None:
+    r = client.post("/api/arm")
+    assert r.status_code == 200 and r.json() == {"armed": True, "trigger": "rest", "shots_left": None}
+    s = client.get("/api/status").json()
+    assert s["state"] == "armed" and s["armed"] and s["activity"] == "waiting for the trigger"
+    time.sleep(0.05)
+    assert client.get("/api/status").json()["shots_done"] == 0  # armed does not run shots by itself
+    first = client.post("/api/trigger").json()
+    second = client.post("/api/trigger").json()
+    assert second["shot_id"] == first["shot_id"] + 1
+    s = client.get("/api/status").json()
+    assert s["state"] == "armed" and s["shots_done"] == 2
+    client.post("/api/stop")
+    assert client.get("/api/status").json()["state"] == "idle"
+    assert client.post("/api/trigger").status_code == 409
+
+
+def test_arm_for_n_shots_disarms_after_them(client: TestClient) -> None:
+    assert client.post("/api/arm", json={"shots": 2}).json()["shots_left"] == 2
+    assert client.post("/api/trigger").status_code == 200
+    assert client.get("/api/status").json()["state"] == "armed"
+    assert client.post("/api/trigger").status_code == 200
+    assert client.get("/api/status").json()["state"] == "idle"
+    assert client.post("/api/trigger").status_code == 409
+
+
+@pytest.mark.parametrize("body", [{"shots": 0}, {"shots": "two"}, {"shots": 1.5}, [1]])
+def test_bad_arm_is_422_and_leaves_state(client: TestClient, body: object) -> None:
+    r = client.post("/api/arm", json=body)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][0] == "body"
+    assert client.get("/api/status").json()["state"] == "idle"
+
+
+def test_arm_stops_continuous_shots_and_run_disarms(client: TestClient) -> None:
+    client.post("/api/run")
+    client.post("/api/arm")
+    time.sleep(0.05)
+    done = client.get("/api/status").json()["shots_done"]
+    time.sleep(0.1)
+    s = client.get("/api/status").json()
+    assert s["state"] == "armed" and s["running"] is False and s["shots_done"] == done
+    client.post("/api/run")
+    s = client.get("/api/status").json()
+    assert s["armed"] is False and s["state"] == "running"
+    client.post("/api/stop")
+
+
+def test_hardware_trigger_without_a_trigger_input_is_refused(client: TestClient) -> None:
+    client.patch("/api/config", json={"loop": {"trigger": "hardware"}})
+    r = client.post("/api/arm")
+    assert r.status_code == 409 and "trigger input" in r.json()["detail"]
+    assert client.get("/api/status").json()["state"] == "idle"
+
+
+def test_two_triggers_at_once_are_serialized(tmp_path: Path) -> None:
+    service, engine = make_service(tmp_path, shot_s=0.05)
+    try:
+        with TestClient(create_app(service=service)) as c:
+            c.post("/api/arm")
+            codes: list[int] = []
+            threads = [threading.Thread(target=lambda: codes.append(c.post("/api/trigger").status_code)) for _ in range(2)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            assert codes == [200, 200] and engine.max_in_shot == 1
+    finally:
+        service.close()
+
+
+def test_status_shows_running_during_a_shot(tmp_path: Path) -> None:
+    service, _ = make_service(tmp_path, shot_s=0.3)
+    try:
+        with TestClient(create_app(service=service)) as c:
+            t = threading.Thread(target=lambda: c.post("/api/shots"))
+            t.start()
+            time.sleep(0.1)
+            s = c.get("/api/status").json()
+            t.join()
+            assert s["state"] == "running" and s["activity"] == "one shot"
+            assert c.get("/api/status").json()["state"] == "idle"
+    finally:
+        service.close()
+
+
+# -- calibration ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def optics_lab(tmp_path: Path) -> Iterator[tuple[LabService, TestClient]]:
+    """The stand-in engine's camera sees a wider PSF, displaced by 0.6 px, than the configuration says."""
+    service, _ = make_service(tmp_path, optics={"psf_sigma_px": 1.6, "origin_px": (8.6, 8.0)})
+    try:
+        with TestClient(create_app(service=service)) as c:
+            yield service, c
+    finally:
+        service.close()
+
+
+def test_calibrate_threshold_returns_fit_without_applying(optics_lab: tuple[LabService, TestClient]) -> None:
+    _, c = optics_lab
+    before = c.get("/api/config").json()
+    r = c.post("/api/calibrate/threshold", json={"images": 20})
+    assert r.status_code == 200, r.text
+    cal = r.json()
+    assert cal["kind"] == "threshold" and cal["images"] == 20 and cal["applied"] is False
+    assert cal["mean_empty"] < cal["threshold"] < cal["mean_atom"]
+    assert 0.9 < cal["fidelity"] <= 1.0 and cal["fidelity"] >= cal["current_fidelity"] - 1e-9
+    assert 0.4 < cal["fraction_filled"] < 0.8  # sim.loading_probability 0.6
+    assert cal["apply_patch"] == {"imaging": {"threshold": round(cal["threshold"], 3)}}
+    assert c.get("/api/config").json() == before  # nothing applied
+    assert [x["id"] for x in c.get("/api/calibrate").json()] == [cal["id"]]
+    r = c.post("/api/calibrate/apply", json={"id": cal["id"]})
+    assert r.status_code == 200, r.text
+    assert r.json()["applied"]["applied"] is True
+    cfg = c.get("/api/config").json()
+    assert cfg["imaging"]["threshold"] == round(cal["threshold"], 3)
+    assert r.json()["config_digest"] != before and c.get("/api/status").json()["config_digest"] == r.json()["config_digest"]
+
+
+def test_calibrate_psf_finds_the_true_optics(optics_lab: tuple[LabService, TestClient]) -> None:
+    _, c = optics_lab
+    before = c.get("/api/config").json()
+    cal = c.post("/api/calibrate/psf", json={"images": 20}).json()
+    assert cal["kind"] == "psf" and cal["current_sigma_px"] == 1.2
+    assert abs(cal["sigma_px"] - 1.6) < 0.1
+    assert abs(cal["origin_px"][0] - 8.6) < 0.15 and abs(cal["col_step_px"][0] - 16.0) < 0.01
+    assert cal["row_step_px"] == [0.0, 16.0]  # a chain cannot show its row step: kept
+    assert cal["lattice_rms_px"] < 0.2 and cal["traps_fitted"] > 50
+    assert cal["fidelity"] >= cal["current_fidelity"]
+    assert c.get("/api/config").json() == before
+    applied = c.post("/api/calibrate/apply", json={"id": cal["id"]}).json()["applied"]
+    cam = c.get("/api/config").json()["camera"]
+    assert cam["psf_sigma_px"] == applied["apply_patch"]["camera"]["psf_sigma_px"]
+    assert cam["origin_px"] == applied["apply_patch"]["camera"]["origin_px"]
+
+
+def test_calibration_apply_refuses_a_stale_or_unknown_one(optics_lab: tuple[LabService, TestClient]) -> None:
+    _, c = optics_lab
+    cal = c.post("/api/calibrate/threshold", json={"images": 10}).json()
+    c.patch("/api/config", json={"sim": {"loading_probability": 0.5}})
+    before = c.get("/api/config").json()
+    r = c.post("/api/calibrate/apply", json={"id": cal["id"]})
+    assert r.status_code == 409 and "calibrate again" in r.json()["detail"]
+    r = c.post("/api/calibrate/apply", json={"id": "threshold-999"})
+    assert r.status_code == 404
+    assert c.post("/api/calibrate/apply", json={}).status_code == 422
+    assert c.get("/api/config").json() == before
+
+
+@pytest.mark.parametrize("body", [{"images": 1}, {"images": 100000}, {"images": "many"}, {"frames": 10}])
+def test_bad_calibration_request_is_422(optics_lab: tuple[LabService, TestClient], body: dict) -> None:
+    _, c = optics_lab
+    for path in ("/api/calibrate/threshold", "/api/calibrate/psf"):
+        r = c.post(path, json=body)
+        assert r.status_code == 422, (path, body, r.text)
+        assert r.json()["detail"][0]["loc"][:2] == ["body", next(iter(body))]
+    assert c.get("/api/calibrate").json() == []
+
+
+def test_calibration_of_an_empty_array_is_409(optics_lab: tuple[LabService, TestClient]) -> None:
+    _, c = optics_lab
+    c.patch("/api/config", json={"sim": {"loading_probability": 0.0}})
+    r = c.post("/api/calibrate/threshold", json={"images": 10})
+    assert r.status_code == 409 and "single population" in r.json()["detail"]

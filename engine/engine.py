@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from engine.config import SystemConfig
-from engine.devices import DeviceError, DeviceSet, StepInfo
+from engine.devices import DeviceError, DeviceSet
 from engine.imaging import Detector
 from engine.operations import Plan
 from engine.records import CycleRecord, Outcome, ShotRecord
@@ -159,6 +159,7 @@ class Engine:
         )
         clock = self.devices.clock
         record.t_start_s = clock.now_s()
+        self._back_to_idle()
         if self.lab is not None:
             self.lab.prepare_shot()
         p.timer.reset()
@@ -237,14 +238,27 @@ class Engine:
         return None
 
     def _hold_atoms(self) -> None:
-        """After a fault: make the card loop the hold waveform so every trapped atom stays trapped."""
+        """After a fault: make the card loop the hold waveform so every trapped atom stays trapped.
+
+        If playback is already past idle, the card falls into the failsafe step after the last uploaded
+        control segment and loops there, holding the tweezers (and any atoms in them) where that segment
+        left them, until the next shot starts (``Streamer.recover``).
+        """
         p = self._p
         assert p is not None
-        lay = p.streamer.layout
         try:
-            self.devices.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=lay.idle_step))
+            p.streamer.rest()
         except DeviceError:
             pass  # the card itself failed; the fault already says why
+
+    def _back_to_idle(self) -> None:
+        """Before a shot: find the card resting in an idle step, or restart it there after a fault."""
+        p = self._p
+        assert p is not None
+        try:
+            p.streamer.recover()
+        except DeviceError:
+            pass  # the shot's first stream will report the card's fault
 
 
 class EngineThread:

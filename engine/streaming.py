@@ -7,18 +7,24 @@ Memory layout (segments and steps of the card, fixed when a configuration is app
     segments K+1..2K     failsafe segments: the tones where the paired control segment leaves them, steady
     segment 2K+1         the short-path segment (up to two control segments' worth of slots)
 
-    step 0               idle, loops on itself until the host points it at a control step
+    step 0               idle A, loops the hold waveform on itself until the host points it at a plan
     step 2j+1            control step j  -> next: its failsafe step (until the next segment is uploaded)
     step 2j+2            failsafe step j -> loops on itself (until the host points it at the next control step)
-    step 2K+1            the short-path step -> next: idle
+    step 2K+1            the short-path step
+    step 2K+2            idle B, the same hold waveform looping on itself
 
-A cycle uploads control segments 0 and 1, then points idle at control step 0: that is the latency. While
+The card rests in one of the two idle steps (the *home* step). A plan ends in the *other* one, which
+already loops on itself, so the end of a plan never races the host: with a single idle step the host must
+re-point it at itself before the plan's last slot plays, or a slow host makes the card play the plan twice.
+The next cycle starts from wherever the last one ended (ping-pong).
+
+A cycle uploads control segments 0 and 1, then points home at control step 0: that is the latency. While
 segment k plays, segment k+2 is rendered and uploaded, and only then are control step k+1 and its failsafe
 pointed at it. If the host is late, the card falls into the failsafe after segment k+1, which holds the
 mobile tweezers where that segment left them (a pause, not a loss), and resumes when the pointer arrives.
-The last control step points back at idle. Plans of at most two segments' worth of slots take the short
-path: one upload, one pointer, no failsafe needed. Segments are written at their exact length (no padding
-to whole segments), so a 20-slot plan streams in 20 slots, not 64.
+Plans of at most two segments' worth of slots take the short path: one upload, one pointer, no failsafe
+needed. Segments are written at their exact length (no padding to whole segments), so a 20-slot plan
+streams in 20 slots, not 64.
 """
 
 from __future__ import annotations
@@ -50,9 +56,9 @@ class SequenceLayout:
         if n_control < 2:
             raise ValueError(f"awg.n_segments = {config.awg.n_segments} leaves fewer than 2 control segments")
         layout = cls(n_control=n_control)
-        if layout.short_step >= config.awg.n_steps:
+        if layout.park_step >= config.awg.n_steps:
             raise ValueError(
-                f"the sequence layout needs {layout.short_step + 1} steps but awg.n_steps is {config.awg.n_steps}"
+                f"the sequence layout needs {layout.park_step + 1} steps but awg.n_steps is {config.awg.n_steps}"
             )
         return layout
 
@@ -75,6 +81,14 @@ class SequenceLayout:
     @property
     def short_step(self) -> int:
         return 1 + 2 * self.n_control
+
+    @property
+    def park_step(self) -> int:
+        """Idle B: the second hold step (see the module docstring)."""
+        return 2 + 2 * self.n_control
+
+    def is_idle_step(self, step: int) -> bool:
+        return step in (self.idle_step, self.park_step)
 
     def is_failsafe_step(self, step: int) -> bool:
         return 2 <= step <= 2 * self.n_control and step % 2 == 0
@@ -102,6 +116,7 @@ class Streamer:
         self.layout = SequenceLayout.for_config(config)
         self.slots_per_segment = config.awg.waveforms_per_segment
         self.timeout_s = 1.0
+        self.home = self.layout.idle_step  # the idle step the card rests in between plans
         slot = bank.slot_samples
         ch = bank.n_channels
         self._segment_buf = np.zeros((self.slots_per_segment * slot, ch), dtype=np.int16)
@@ -125,13 +140,38 @@ class Streamer:
         return self.layout.n_control * self.slots_per_segment
 
     def program_idle(self) -> None:
-        """Upload the hold waveform and point the idle step at itself (done when a configuration is applied)."""
+        """Upload the hold waveform and make both idle steps loop on it (done when a configuration is applied)."""
         lay = self.layout
         self.awg.write_segment(lay.idle_segment, self.bank.hold())
-        self.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=lay.idle_step))
+        self.rest()
+        self.home = lay.idle_step
+
+    def rest(self) -> None:
+        """Make both idle steps loop on themselves: wherever the card is now, it ends up holding the atoms."""
+        lay = self.layout
+        for step in (lay.idle_step, lay.park_step):
+            self.awg.write_step(step, StepInfo(segment=lay.idle_segment, next_step=step))
+
+    def recover(self) -> None:
+        """Before a cycle: find the card at rest, or (after a fault left it in a failsafe loop) restart it at idle."""
+        lay = self.layout
+        step = self.awg.current_step()
+        if lay.is_idle_step(step):
+            self.home = step
+            return
+        self.awg.stop()
+        self.rest()
+        self.awg.start(lay.idle_step)
+        self.home = lay.idle_step
+
+    @property
+    def away(self) -> int:
+        """The idle step the next plan ends in: the one the card is not resting in."""
+        lay = self.layout
+        return lay.park_step if self.home == lay.idle_step else lay.idle_step
 
     def stream(self, ops: Operations, timer: StageTimer | None = None) -> StreamReport:
-        """Play every slot of ``ops`` and return once the card is back at the idle step."""
+        """Play every slot of ``ops`` and return once the card rests in an idle step again."""
         n = len(ops)
         report = StreamReport(n_slots=n)
         if n == 0:
@@ -157,16 +197,18 @@ class Streamer:
             timer.lap("IV.render")
 
     def _start(self, step: int, report: StreamReport, t0: float) -> None:
+        """Make the plan's end step loop on itself, then point home at the plan's first step."""
         lay = self.layout
-        self.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=step))
+        self.awg.write_step(self.away, StepInfo(segment=lay.idle_segment, next_step=self.away))
+        self.awg.write_step(self.home, StepInfo(segment=lay.idle_segment, next_step=step))
         report.t_started_s = self.clock.now_s()
         report.latency_s = report.t_started_s - t0
 
-    def _release_idle(self) -> None:
-        """Once playback has left idle, make idle loop on itself again so the plan ends there."""
-        lay = self.layout
-        self.awg.wait_for_step(lay.control_step(0), timeout_s=self.timeout_s)
-        self.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=lay.idle_step))
+    def _finish(self, n_slots: int) -> None:
+        """Wait until the card rests in the plan's end step, which becomes home."""
+        away = self.away
+        self.awg.wait_for_step(away, timeout_s=self.timeout_s + n_slots * self._slot_s())
+        self.home = away
 
     def _stream_short(self, ops: Operations, report: StreamReport, timer: StageTimer | None) -> None:
         lay = self.layout
@@ -179,13 +221,11 @@ class Streamer:
         self.awg.write_segment(lay.short_segment, self._short_buf[:samples])
         if timer is not None:
             timer.lap("IV.upload")
-        self.awg.write_step(lay.short_step, StepInfo(segment=lay.short_segment, next_step=lay.idle_step))
+        self.awg.write_step(lay.short_step, StepInfo(segment=lay.short_segment, next_step=self.away))
         self._start(lay.short_step, report, t0)
         if timer is not None:
             timer.lap("IV.sequence")
-        self.awg.wait_for_step(lay.short_step, timeout_s=self.timeout_s)
-        self.awg.write_step(lay.idle_step, StepInfo(segment=lay.idle_segment, next_step=lay.idle_step))
-        self.awg.wait_for_step(lay.idle_step, timeout_s=self.timeout_s + n * self._slot_s())
+        self._finish(n)
         if timer is not None:
             timer.lap("V.stream")
         report.short_path = True
@@ -195,7 +235,8 @@ class Streamer:
         return self.bank.slot_samples / self.awg.sample_rate_hz
 
     def _upload_segment(self, ops: Operations, k: int, n_segments: int, timer: StageTimer | None) -> None:
-        """Render and upload control segment k and its failsafe, and point its step at the failsafe (or idle)."""
+        """Render and upload control segment k and its failsafe, and point its step at the failsafe (or the
+        plan's end step)."""
         lay = self.layout
         first = k * self.slots_per_segment
         count = min(self.slots_per_segment, len(ops) - first)
@@ -206,7 +247,7 @@ class Streamer:
             self.bank.render_failsafe(ops, first + count - 1, self._failsafe_buf)
             self.awg.write_segment(lay.failsafe_segment(k), self._failsafe_buf)
             self.awg.write_step(lay.failsafe_step(k), StepInfo(segment=lay.failsafe_segment(k), next_step=lay.failsafe_step(k)))
-        next_step = lay.idle_step if last else lay.failsafe_step(k)
+        next_step = self.away if last else lay.failsafe_step(k)
         self.awg.write_step(lay.control_step(k), StepInfo(segment=lay.control_segment(k), next_step=next_step))
         if timer is not None:
             timer.lap("IV.upload")
@@ -231,13 +272,12 @@ class Streamer:
         self._start(lay.control_step(0), report, t0)
         if timer is not None:
             timer.lap("IV.sequence")
-        self._release_idle()
         for k in range(2, n_segments):
             self._upload_segment(ops, k, n_segments, None)
             if lay.is_failsafe_step(self.awg.current_step()):
                 report.underruns += 1
             self._link(k)
-        self.awg.wait_for_step(lay.idle_step, timeout_s=self.timeout_s + len(ops) * self._slot_s())
+        self._finish(len(ops))
         if timer is not None:
             timer.lap("V.stream")
 

@@ -13,7 +13,7 @@ from drivers.sim.awg import SimAWG
 from drivers.sim.camera import SimCamera
 from drivers.sim.clock import SimClock
 from drivers.sim.world import World
-from engine.config import SystemConfig
+from engine.config import FaultConfig, SystemConfig
 from engine.devices import DeviceSet
 
 __all__ = ["SimLab", "build_sim_lab"]
@@ -26,19 +26,24 @@ class SimLab:
         self.world = world
         self.awg = awg
         self.camera = camera
+        self.faults = FaultConfig()
 
     def configure(self, config: SystemConfig) -> None:
         """Adopt a configuration the engine is applying: array, tones, loss model and injected faults."""
         self.world.reconfigure(config)
         self.camera.set_system_config(config)
         self.awg.set_system_config(config)
-        faults = config.sim.faults
+        self.faults = config.sim.faults  # they strike from the next shot on, not while the engine programs
+        self._arm(FaultConfig())
+
+    def _arm(self, faults: FaultConfig) -> None:
         self.camera.fault = None if faults.camera == "none" else faults.camera
         self.awg.fail_uploads = faults.awg_upload == "fail"
         self.awg.upload_delay_s = faults.upload_delay_s
 
     def prepare_shot(self) -> None:
-        """Throw away the previous atoms and load a fresh array (Bernoulli per trap)."""
+        """Arm the configured faults, throw away the previous atoms and load a fresh array (Bernoulli per trap)."""
+        self._arm(self.faults)
         self.awg.sync()
         self.world.load()
 

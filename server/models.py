@@ -245,9 +245,11 @@ class PsfCalibrationOut(_CalibrationBase):
 
     sigma_px: float = Field(description="fitted Gaussian sigma (sensor pixels)")
     current_sigma_px: float
-    origin_px: tuple[float, float] = Field(description="fitted (x, y) of trap (row 0, col 0), sensor pixels")
-    col_step_px: tuple[float, float]
-    row_step_px: tuple[float, float]
+    origin_px: list[float] = Field(
+        min_length=2, max_length=2, description="fitted (x, y) of trap (row 0, col 0), sensor pixels"
+    )
+    col_step_px: list[float] = Field(min_length=2, max_length=2, description="(x, y) step from column c to c+1")
+    row_step_px: list[float] = Field(min_length=2, max_length=2, description="(x, y) step from row r to r+1")
     lattice_rms_px: float = Field(description="rms distance of the fitted centres from the fitted lattice")
     max_shift_px: float = Field(description="largest move of a trap centre from its configured position")
     traps_fitted: int = Field(description="traps that held an atom in at least one frame")

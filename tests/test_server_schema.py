@@ -1,7 +1,12 @@
 """Property test of the API against its own /openapi.json (schemathesis): no 5xx, no undocumented status code,
 responses that match their schemas. Bounded examples keep it to a few seconds; runs on the stand-in engine,
 so generated configurations are applied instantly instead of compiling kernels. The app has a token, so the
-checks also confirm that every mutating route refuses a request without it."""
+checks also confirm that every mutating route refuses a request without it.
+
+One check is relaxed, for the configuration routes only: a schema-valid configuration may still be refused
+(422), because JSON Schema cannot say the cross-field rules a configuration must obey (tones on the slot
+grid, traps inside the camera ROI, different trigger lines, ...). Every refusal is still checked to be a
+documented status with a documented body; wrong types and out-of-range values must be refused."""
 
 from __future__ import annotations
 
@@ -11,6 +16,7 @@ import pytest
 
 schemathesis = pytest.importorskip("schemathesis")
 from hypothesis import HealthCheck, settings  # noqa: E402
+from schemathesis.checks import positive_data_acceptance  # noqa: E402
 
 from engine.engine import EngineThread  # noqa: E402
 from server.app import create_app  # noqa: E402
@@ -40,4 +46,8 @@ def _started() -> object:
 @schema.parametrize()
 @settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck))
 def test_api_conforms_to_its_schema(case: schemathesis.Case) -> None:
-    case.call_and_validate(headers={"Authorization": f"Bearer {TOKEN}"})
+    cross_field_rules = case.path == "/api/config" or case.path == "/api/shots"  # configs, overrides
+    case.call_and_validate(
+        headers={"Authorization": f"Bearer {TOKEN}"},
+        excluded_checks=[positive_data_acceptance] if cross_field_rules else [],
+    )

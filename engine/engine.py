@@ -260,6 +260,33 @@ class Engine:
         except DeviceError:
             pass  # the shot's first stream will report the card's fault
 
+    # -- between shots: frames for calibration and for display ----------------------------------------------
+
+    def acquire_images(self, n: int) -> np.ndarray:
+        """``uint16[n, h, w]``: ``n`` frames taken back to back between shots, for calibration.
+
+        With a lab (the simulated one) each frame is of a freshly loaded array; on hardware the experiment
+        keeps whatever atoms it loaded. Raises ``DeviceError`` if the camera fails.
+        """
+        p = self._p
+        assert p is not None
+        if n < 1:
+            raise ValueError(f"acquire_images needs n >= 1 (got {n})")
+        frames = np.empty((n, *p.image.shape), dtype=np.uint16)
+        self._back_to_idle()
+        for frame in frames:
+            if self.lab is not None:
+                self.lab.prepare_shot()
+            self.devices.awg.pulse("camera")
+            self.devices.camera.trigger()
+            self.devices.camera.read(frame, timeout_s=p.config.camera.timeout_s)
+        return frames
+
+    def last_frame(self) -> np.ndarray:
+        """A copy of the latest camera frame (after a shot: the image its last cycle saw)."""
+        assert self._p is not None
+        return self._p.image.copy()
+
 
 class EngineThread:
     """Owns an ``Engine`` on a dedicated thread; other threads send it commands and get futures back.

@@ -24,6 +24,7 @@ from pydantic import Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from engine.config import SystemConfig
+from engine.devices import DeviceError
 from server.hub import LiveHub, cycle_messages
 from server.models import (
     ArmOut,
@@ -57,6 +58,7 @@ _BODY_ERRORS: dict[int | str, dict[str, Any]] = {
 }
 _AUTH_ERRORS: dict[int | str, dict[str, Any]] = {401: _BODY_ERRORS[401]}
 _CONFLICT: dict[int | str, dict[str, Any]] = {409: {**_ERR, "description": "not possible in the present state; `detail` says why"}}
+_DEVICE = {503: {**_ERR, "description": "a device failed while acquiring frames; `detail` says which"}}
 _CALIBRATION = Annotated[ThresholdCalibrationOut | PsfCalibrationOut, Field(discriminator="kind")]
 
 
@@ -261,12 +263,14 @@ def create_app(
             return run(images=(request or CalibrationRequest()).images)
         except ValueError as err:  # the frames could not be fitted (e.g. no atoms loaded)
             raise HTTPException(409, detail=f"{kind} calibration failed: {err}") from None
+        except DeviceError as err:  # the camera failed while acquiring
+            raise HTTPException(503, detail=f"{kind} calibration failed: {err}") from None
 
     @app.post(
         "/api/calibrate/threshold",
         response_model=ThresholdCalibrationOut,
         dependencies=auth,
-        responses={**body_errors, **_CONFLICT},
+        responses={**body_errors, **_CONFLICT, **_DEVICE},
         summary="Acquire fresh frames and fit the occupancy threshold; returns the fit and its fidelity, "
         "applies nothing (see POST /api/calibrate/apply)",
     )
@@ -277,7 +281,7 @@ def create_app(
         "/api/calibrate/psf",
         response_model=PsfCalibrationOut,
         dependencies=auth,
-        responses={**body_errors, **_CONFLICT},
+        responses={**body_errors, **_CONFLICT, **_DEVICE},
         summary="Acquire fresh frames and fit the PSF and trap lattice; returns the fit and the detection "
         "fidelity with it and with the PSF in use, applies nothing (see POST /api/calibrate/apply)",
     )

@@ -1,0 +1,153 @@
+"""``llrs serve``: the lab server in one process — engine, REST/websocket API (uvicorn) and viser dashboard.
+
+Threads: the engine thread (owns the devices), the service's runner (continuous shots), the run store's
+writer, viser's websocket thread and the dashboard's drawing thread; uvicorn runs the API on the main
+thread's event loop and owns Ctrl-C / SIGTERM: when it returns, the dashboard and the engine are stopped and
+the run file is closed.
+
+Security: without ``LLRS_TOKEN`` anyone who can reach the port can run shots, so the server binds only to a
+loopback address unless a token is set; with a token every mutating route needs ``Authorization: Bearer``.
+CORS stays closed unless origins are named with ``--cors-origin``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import ipaddress
+import os
+import socket
+import sys
+from pathlib import Path
+
+from engine.config import ConfigError, SystemConfig, load_config
+
+__all__ = ["DEFAULT_CONFIG", "add_parser", "is_loopback", "main"]
+
+#: The config ``llrs serve`` uses without ``--config``: the paper's 1x64 chain (the fastest to compile and run).
+DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "examples" / "chain-1x64.yaml"
+
+
+def is_loopback(host: str) -> bool:
+    """True for addresses only this machine can reach (127.0.0.0/8, ::1, localhost)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+    """Register ``serve`` on the ``llrs`` command line."""
+    p = sub.add_parser(
+        "serve",
+        help="run the lab server: engine, REST API and dashboard (simulated devices by default)",
+        description="Start the engine on the configured devices, the REST/websocket API and the viser dashboard. "
+        "Shots run continuously from the start (--idle to wait for a command). Set LLRS_TOKEN to require a bearer "
+        "token on every mutating route; it is required to bind to a non-loopback address.",
+    )
+    p.add_argument("--config", default=None, help=f"YAML configuration (default: {DEFAULT_CONFIG.relative_to(DEFAULT_CONFIG.parent.parent)})")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind the API and the dashboard to (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="API port (default 8000; 0 picks a free one)")
+    p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080; 0 picks a free one)")
+    p.add_argument("--runs-dir", default="runs", help="where the HDF5 run files go (default ./runs)")
+    p.add_argument("--pause", type=float, default=0.5, help="pause between continuous shots in seconds (default 0.5)")
+    p.add_argument("--idle", action="store_true", help="do not start shots at once; wait for a command")
+    p.add_argument("--no-dashboard", action="store_true", help="serve the API only")
+    p.add_argument("--cors-origin", action="append", default=[], help="allow browsers on this origin to call the API (repeatable)")
+    p.set_defaults(func=main)
+    return p
+
+
+def _engine_thread(config: SystemConfig):  # noqa: ANN202 - composition helper
+    """The engine on the configured devices: ``drivers.factory.open_devices`` where it exists (hardware or
+    simulation by ``config.devices``), else the simulated lab."""
+    from engine.engine import Engine, EngineThread
+
+    def build() -> Engine:
+        try:
+            from drivers.factory import open_devices
+        except ImportError:
+            from drivers.sim.lab import build_sim_lab as open_devices
+        devices, lab = open_devices(config)
+        return Engine(config, devices, lab=lab)
+
+    return EngineThread(build)
+
+
+def _say(text: str) -> None:
+    print(text, flush=True)
+
+
+def main(args: argparse.Namespace) -> int:
+    token = os.environ.get("LLRS_TOKEN") or None
+    if not is_loopback(args.host) and token is None:
+        print(
+            f"llrs serve: refusing to bind to {args.host}, which other machines can reach, without a token.\n"
+            "  Set LLRS_TOKEN (e.g. `export LLRS_TOKEN=$(python3 -c 'import secrets; print(secrets.token_urlsafe())')`)\n"
+            "  so that every mutating request needs 'Authorization: Bearer $LLRS_TOKEN', or bind to 127.0.0.1.",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        config = load_config(args.config or DEFAULT_CONFIG)
+    except ConfigError as err:
+        print(f"llrs serve: {err}", file=sys.stderr)
+        return 2
+    family = socket.AF_INET6 if ":" in args.host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((args.host, args.port))
+    except OSError as err:
+        print(f"llrs serve: cannot listen on {args.host}:{args.port}: {err.strerror} (try --port)", file=sys.stderr)
+        return 2
+    api_port = sock.getsockname()[1]
+    shown_host = f"[{args.host}]" if family == socket.AF_INET6 else args.host
+    api_url = f"http://{shown_host}:{api_port}"
+
+    import uvicorn
+
+    from server.app import create_app
+    from server.runstore import RunStore
+    from server.service import LabService
+
+    devices = f"camera {config.devices.camera}, AWG {config.devices.awg}"
+    _say(f"llrs serve: config '{config.name}' ({config.array.nx}x{config.array.ny} traps, {devices}); "
+         "starting the engine (compiling kernels: the first start takes longer)...")
+    service = LabService(engine_thread=_engine_thread(config), store=RunStore(args.runs_dir), pause_s=args.pause)
+    dashboard = None
+    try:
+        service.start(run=False)
+        dashboard_port = None
+        if not args.no_dashboard:
+            from frontend.dashboard import Dashboard
+
+            dashboard = Dashboard(service, host=args.host, port=args.dashboard_port, api_url=api_url)
+            dashboard_port = dashboard.start()
+        app = create_app(
+            service=service, token=token, cors_origins=tuple(args.cors_origin), dashboard_port=dashboard_port
+        )
+        server = uvicorn.Server(
+            uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=3, ws_ping_interval=20)
+        )
+        if not args.idle:
+            service.run()
+        _say("")
+        if dashboard_port is not None:
+            _say(f"  dashboard   http://{shown_host}:{dashboard_port}/")
+        _say(f"  API         {api_url}/   (docs {api_url}/docs, live cycles ws://{shown_host}:{api_port}/api/live)")
+        _say(f"  run files   {Path(args.runs_dir).resolve()}/")
+        _say(f"  token       {'required on mutating routes (LLRS_TOKEN)' if token else 'none (loopback only)'}")
+        _say(f"  shots       {'idle: POST /api/run or the dashboard starts them' if args.idle else 'running continuously'}")
+        _say("Ctrl-C stops the server.")
+        asyncio.run(server.serve(sockets=[sock]))
+    finally:
+        _say("llrs serve: stopping (finishing the shot in progress, closing the devices and the run file)...")
+        if dashboard is not None:
+            dashboard.stop()
+        service.close()
+        sock.close()
+    _say("llrs serve: stopped.")
+    return 0

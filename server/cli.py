@@ -90,6 +90,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     run.add_argument("--seed", type=int, default=None, help="seed of the simulated lab (overrides sim.seed)")
     run.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     run.set_defaults(func=_cmd_run)
+    from server import devices_cmd
+
+    devices_cmd.register(sub)
     from server import serve  # noqa: PLC0415 - the web stack loads only when serving
 
     serve.add_parser(sub)

@@ -16,6 +16,7 @@ import argparse
 import asyncio
 import ipaddress
 import os
+import signal
 import socket
 import sys
 from pathlib import Path
@@ -80,7 +81,13 @@ def _say(text: str) -> None:
     print(text, flush=True)
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
 def main(args: argparse.Namespace) -> int:
+    # SIGTERM (docker stop, systemd, a test) ends the process like Ctrl-C: through the cleanup below.
+    signal.signal(signal.SIGTERM, _interrupt)
     token = os.environ.get("LLRS_TOKEN") or None
     if not is_loopback(args.host) and token is None:
         print(
@@ -142,7 +149,18 @@ def main(args: argparse.Namespace) -> int:
         _say(f"  token       {'required on mutating routes (LLRS_TOKEN)' if token else 'none (loopback only)'}")
         _say(f"  shots       {'idle: POST /api/run or the dashboard starts them' if args.idle else 'running continuously'}")
         _say("Ctrl-C stops the server.")
-        asyncio.run(server.serve(sockets=[sock]))
+        # uvicorn handles Ctrl-C/SIGTERM while it serves, then re-raises the signal it caught once it has
+        # stopped; our handlers take that re-raised signal as noted, so the cleanup below always runs.
+        caught: list[int] = []
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda signum, frame: caught.append(signum))
+        try:
+            asyncio.run(server.serve(sockets=[sock]))
+        finally:
+            signal.signal(signal.SIGINT, signal.default_int_handler)  # a second Ctrl-C while stopping: force
+            signal.signal(signal.SIGTERM, _interrupt)
+    except KeyboardInterrupt:
+        pass
     finally:
         _say("llrs serve: stopping (finishing the shot in progress, closing the devices and the run file)...")
         if dashboard is not None:

@@ -1,0 +1,333 @@
+"""The viser dashboard: live atom map, camera image, stage timings against the paper, history, and controls.
+
+The dashboard is one more client of the lab service, using exactly what the REST API uses (``status()``,
+``config``, ``shots()``, ``last_frame()``, ``run()``, ``stop()``, ``shot()``, ``patch_config()``); it never
+touches the engine. viser runs its own websocket server on its own thread and port. The service calls our
+listener on the engine thread after every shot: the listener only sets an event, and a worker thread of the
+dashboard does the drawing, so a slow browser or a slow conversion never delays a shot.
+
+What is drawn is computed by the plain functions of ``frontend.views``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+
+from engine.config import SystemConfig
+from engine.psf import trap_positions_px
+from engine.records import ShotRecord
+from engine.solvers import ALGORITHMS
+from frontend import views
+
+__all__ = ["Dashboard", "LabClient", "target_presets"]
+
+log = logging.getLogger("llrs.dashboard")
+
+
+class LabClient(Protocol):
+    """The part of ``server.service.LabService`` the dashboard drives (the same calls the REST API makes)."""
+
+    @property
+    def config(self) -> SystemConfig: ...
+
+    def status(self) -> Any: ...
+
+    def shots(self, *, limit: int, offset: int) -> tuple[int, list[ShotRecord]]: ...
+
+    def last_frame(self) -> tuple[int, np.ndarray] | None: ...
+
+    def run(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def shot(self, *, override: dict[str, Any] | None = None) -> ShotRecord: ...
+
+    def patch_config(self, patch: dict[str, Any]) -> SystemConfig: ...
+
+    def add_listener(self, callback: Callable[[ShotRecord], None]) -> None: ...
+
+    def remove_listener(self, callback: Callable[[ShotRecord], None]) -> None: ...
+
+
+def target_presets(config: SystemConfig) -> OrderedDict[str, dict[str, Any]]:
+    """Target patterns offered in the dashboard for this array (label -> ``target`` config section).
+
+    The first entry is the configured target. A chain gets centre blocks of several sizes, a left-aligned
+    block and every other trap; a grid gets full-width centre bands (what its planners fill)."""
+    nx, ny = config.array.nx, config.array.ny
+    presets: OrderedDict[str, dict[str, Any]] = OrderedDict()
+    presets["as configured"] = config.target.model_dump(mode="json")
+    if ny == 1:
+        for count in sorted({max(1, nx // 4), max(1, nx // 2), max(1, (nx * 9) // 16)}):
+            presets[f"centre block of {count}"] = {"kind": "centre", "count": count}
+        half = max(1, nx // 2)
+        presets[f"left block of {half}"] = {"kind": "rectangle", "row0": 0, "col0": 0, "rows": 1, "cols": half}
+        presets["every other trap"] = {"kind": "mask", "mask": ["".join("1" if i % 2 == 0 else "0" for i in range(nx))]}
+    else:
+        for rows in sorted({max(1, ny // 4), max(1, ny // 2)}):
+            presets[f"centre band of {rows} rows ({rows * nx} atoms)"] = {"kind": "centre", "count": rows * nx}
+    return presets
+
+
+class Dashboard:
+    """A viser server showing one lab service. ``start()`` returns the port it listens on."""
+
+    def __init__(
+        self,
+        service: LabClient,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        api_url: str | None = None,
+        history: int = 200,
+        timing_shots: int = 50,
+        refresh_s: float = 0.5,
+    ) -> None:
+        self.service = service
+        self.host = host
+        self.port = port
+        self.api_url = api_url
+        self.history = history
+        self.timing_shots = timing_shots
+        self.refresh_s = refresh_s
+        self._server: Any = None
+        self._new_shot = threading.Event()
+        self._closing = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._dicts: OrderedDict[int, dict[str, Any]] = OrderedDict()  # shot_id -> to_dict(), newest last
+        self._shown_shot: int | None = None
+        self._shown_frame: int | None = None
+        self._config_digest: str | None = None
+        self._presets: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        self._positions = np.zeros((0, 2))
+        self.updates = 0  # drawn shots, for tests
+
+    # -- life cycle -------------------------------------------------------------------------------------------
+
+    def start(self) -> int:
+        import viser  # imported here: the engine and the API work without a dashboard
+
+        self._server = viser.ViserServer(host=self.host, port=self.port, label="LLRS lab", verbose=False)
+        self.port = self._server.get_port()
+        self._build()
+        self.service.add_listener(self._on_shot)
+        self._worker = threading.Thread(target=self._loop, name="llrs-dashboard", daemon=True)
+        self._worker.start()
+        return self.port
+
+    def stop(self) -> None:
+        self._closing.set()
+        self._new_shot.set()
+        self.service.remove_listener(self._on_shot)
+        if self._worker is not None:
+            self._worker.join(timeout=5)
+        if self._server is not None:
+            self._server.stop()
+
+    # -- layout -----------------------------------------------------------------------------------------------
+
+    def _build(self) -> None:
+        server = self._server
+        gui = server.gui
+        gui.configure_theme(dark_mode=False, show_logo=False, show_share_button=False, brand_color=(44, 120, 200))
+        gui.set_panel_label("LLRS lab")
+        gui.main_panel.dock_left()
+        gui.main_panel.set_width(360)
+
+        # Left: status, controls, simulation knobs.
+        api = f" · [API docs]({self.api_url}/docs)" if self.api_url else ""
+        gui.add_markdown(f"### LLRS lab server{api}")
+        self.h_status = gui.add_html(self._status_html())
+        with gui.add_folder("Shots"):
+            self.b_run = gui.add_button("Run continuously", color="green")
+            self.b_stop = gui.add_button("Stop", color="red")
+            self.b_once = gui.add_button("One shot")
+        with gui.add_folder("Problem"):
+            cfg = self.service.config
+            algorithms = list(ALGORITHMS) if cfg.solver.algorithm in ALGORITHMS else [cfg.solver.algorithm, *ALGORITHMS]
+            self.d_algorithm = gui.add_dropdown("Algorithm", options=algorithms, initial_value=cfg.solver.algorithm)
+            self._presets = target_presets(cfg)
+            self.d_target = gui.add_dropdown("Target", options=list(self._presets), initial_value="as configured")
+            self.n_max_cycles = gui.add_number("Max cycles", initial_value=cfg.loop.max_cycles, min=1, max=100, step=1)
+            self.b_problem = gui.add_button("Apply problem")
+        self.f_sim = gui.add_folder("Simulated lab")
+        with self.f_sim:
+            self.s_loading = gui.add_slider("Loading prob.", min=0.05, max=1.0, step=0.01, initial_value=cfg.sim.loading_probability)
+            self.s_transfer = gui.add_slider("Survival / transfer", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_transfer)
+            self.s_step = gui.add_slider("Survival / step", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_step)
+            self.c_lossless = gui.add_checkbox("Lossless", initial_value=cfg.sim.lossless)
+            self.b_sim = gui.add_button("Apply simulation")
+        self.f_sim.visible = self._simulated(cfg)
+        self.h_message = gui.add_html("")
+
+        # Right: atoms and camera; timing and history.
+        live = gui.add_panel()
+        with live.add_tab("Atoms"):
+            self.h_atoms = gui.add_html('<div id="atom-map" data-shot-id="" style="color:#777">waiting for the first shot…</div>')
+            self.i_camera = gui.add_image(np.zeros((8, 32, 3), dtype=np.uint8), label="camera: no frame yet", format="png")
+        live.dock_right()
+        live.set_width(760)
+        stats = gui.add_panel()
+        with stats.add_tab("Timing and history"):
+            self.h_timing = gui.add_html(views.timing_html([], "1x64", shots=0))
+            empty = (np.zeros(1), np.zeros(1))
+            self.p_success = gui.add_uplot(
+                data=empty,
+                series=({"label": "shot"}, {"label": "defect-free % (last 20)", "stroke": views.COLOURS["in_place"], "width": 2}),
+                title="Success rate",
+                scales={"y": {"auto": False, "range": [0, 100]}},
+                height=150,
+            )
+            self.p_cycles = gui.add_uplot(
+                data=empty,
+                series=(
+                    {"label": "shot"},
+                    {"label": "rearrangement cycles", "stroke": views.COLOURS["ours"], "width": 0,
+                     "points": {"show": True, "size": 5, "fill": views.COLOURS["ours"]}},
+                ),
+                title="Cycles per shot",
+                height=130,
+            )
+        stats.dock_below(live)
+
+        self.b_run.on_click(lambda event: self._command("run", self.service.run))
+        self.b_stop.on_click(lambda event: self._command("stop", self.service.stop))
+        self.b_once.on_click(lambda event: self._command("one shot", self.service.shot))
+        self.b_problem.on_click(lambda event: self._apply(self._problem_patch(), "problem"))
+        self.b_sim.on_click(lambda event: self._apply(self._sim_patch(), "simulation"))
+        self._sync_config(force=True)
+
+    # -- controls ---------------------------------------------------------------------------------------------
+
+    @staticmethod
+    def _simulated(cfg: SystemConfig) -> bool:
+        devices = cfg.devices
+        return getattr(devices, "camera", "sim") == "sim" and getattr(devices, "awg", "sim") == "sim"
+
+    def _problem_patch(self) -> dict[str, Any]:
+        patch: dict[str, Any] = {
+            "solver": {"algorithm": self.d_algorithm.value},
+            "loop": {"max_cycles": int(self.n_max_cycles.value)},
+        }
+        if self.d_target.value != "as configured":
+            target = {"kind": "centre", "count": None, "row0": 0, "col0": 0, "rows": None, "cols": None, "mask": None}
+            target.update(self._presets[self.d_target.value])
+            patch["target"] = target
+        return patch
+
+    def _sim_patch(self) -> dict[str, Any]:
+        return {
+            "sim": {
+                "loading_probability": round(float(self.s_loading.value), 4),
+                "survival_transfer": round(float(self.s_transfer.value), 4),
+                "survival_step": round(float(self.s_step.value), 4),
+                "lossless": bool(self.c_lossless.value),
+            }
+        }
+
+    def _say(self, text: str, *, error: bool = False) -> None:
+        colour = "#d62728" if error else "#2c6e2c"
+        self.h_message.content = f'<div style="font-size:12px;color:{colour};white-space:pre-wrap">{text}</div>'
+
+    def _command(self, name: str, call: Callable[[], Any]) -> None:
+        try:
+            call()
+            self._say(f"{name}: ok")
+        except Exception as err:  # shown to the person; the dashboard keeps running
+            self._say(f"{name} failed: {err}", error=True)
+        self._new_shot.set()
+
+    def _apply(self, patch: dict[str, Any], what: str) -> None:
+        try:
+            self.service.patch_config(patch)
+        except ValueError as err:  # ConfigRejected: the field and the reason
+            self._say(f"{what} not applied:\n{err}", error=True)
+            return
+        self._say(f"{what} applied (between shots)")
+        self._new_shot.set()
+
+    def _sync_config(self, *, force: bool = False) -> None:
+        """Show the running configuration in the controls (it may have changed through the API)."""
+        cfg = self.service.config
+        digest = cfg.digest()
+        if digest == self._config_digest and not force:
+            return
+        self._config_digest = digest
+        self._positions = trap_positions_px(cfg)
+        self._column = views.paper_column(cfg.array.nx, cfg.array.ny)
+        self.d_algorithm.value = cfg.solver.algorithm if cfg.solver.algorithm in self.d_algorithm.options else self.d_algorithm.value
+        self._presets = target_presets(cfg)
+        self.d_target.options = list(self._presets)
+        self.d_target.value = "as configured"
+        self.n_max_cycles.value = cfg.loop.max_cycles
+        self.s_loading.value = cfg.sim.loading_probability
+        self.s_transfer.value = max(0.8, cfg.sim.survival_transfer)
+        self.s_step.value = max(0.8, cfg.sim.survival_step)
+        self.c_lossless.value = cfg.sim.lossless
+        self.f_sim.visible = self._simulated(cfg)
+
+    # -- drawing ----------------------------------------------------------------------------------------------
+
+    def _on_shot(self, record: ShotRecord) -> None:
+        """On the engine thread: only wake the worker."""
+        self._new_shot.set()
+
+    def _status_html(self) -> str:
+        status = self.service.status().model_dump(mode="json")
+        colour = views.state_colour(status["state"])
+        text = views.status_markdown(status).replace("  \n", "<br>")
+        text = text.replace("**", "").replace("`", "")
+        return (
+            f'<div id="lab-status" data-state="{status["state"]}" data-shots="{status["shots_done"]}" '
+            f'style="font-size:12px;border-left:4px solid {colour};padding-left:6px">{text}</div>'
+        )
+
+    def _refresh(self) -> None:
+        self._sync_config()
+        self.h_status.content = self._status_html()
+        total, records = self.service.shots(limit=self.history, offset=0)
+        if not records:
+            return
+        newest = records[0]
+        for record in reversed(records):  # oldest first, so the dict keeps shot order
+            if record.shot_id not in self._dicts:
+                self._dicts[record.shot_id] = record.to_dict() | {"rearrangements": sum(1 for c in record.cycles if c.n_slots > 0)}
+        keep = {r.shot_id for r in records}
+        for shot_id in [k for k in self._dicts if k not in keep]:
+            del self._dicts[shot_id]
+        if newest.shot_id == self._shown_shot:
+            return
+        shots = list(self._dicts.values())
+        latest = self._dicts[newest.shot_id]
+        if len(self._positions) == len(latest["target"]) * len(latest["target"][0]):
+            self.h_atoms.content = views.shot_html(latest, self._positions, width_px=720)
+        frame = self.service.last_frame()
+        if frame is not None and frame[0] != self._shown_frame:
+            rgb, note = views.frame_to_rgb(frame[1])
+            self.i_camera.image = rgb
+            self.i_camera.label = f"camera, final image of shot {frame[0]}: {note}"
+            self._shown_frame = frame[0]
+        recent = shots[-self.timing_shots :]
+        self.h_timing.content = views.timing_html(views.stage_rows(recent, self._column), self._column, shots=len(recent))
+        ids, rate, cycles = views.history_series(shots)
+        self.p_success.data = (ids, rate)
+        self.p_cycles.data = (ids, cycles)
+        self._shown_shot = newest.shot_id
+        self.updates += 1
+
+    def _loop(self) -> None:
+        while not self._closing.is_set():
+            self._new_shot.wait(self.refresh_s)
+            self._new_shot.clear()
+            if self._closing.is_set():
+                return
+            try:
+                self._refresh()
+            except Exception:  # never let one bad frame kill the dashboard
+                log.exception("dashboard refresh failed")

@@ -90,6 +90,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     run.add_argument("--seed", type=int, default=None, help="seed of the simulated lab (overrides sim.seed)")
     run.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     run.set_defaults(func=_cmd_run)
+    bench = sub.add_parser("bench", help="benchmarks that print figures (see docs/benchmarks.md)")
+    bench_sub = bench.add_subparsers(dest="bench", required=True)
+    from server import bench_runtime
+
+    bench_runtime.register(bench_sub)
     from server import devices_cmd
 
     devices_cmd.register(sub)

@@ -1,0 +1,190 @@
+"""``llrs bench runtime``: the paper's Table 1, reproduced on the simulated lab, with worst cases.
+
+For each of the paper's three problems it runs shots in the loop (loss on, as in the paper) and reports
+every stage's mean, std, median, p99 and max next to the paper's mean, plus the **software latency**: the
+host's own work from image in memory to the first two segments ready for upload (II + III + IV.lookup +
+IV.render), which is what this project controls. Device times (exposure, readout, upload, playback) are the
+simulated lab's models, reported for completeness; on hardware they are the devices' own.
+
+Only cycles that rearranged atoms count for stages III-V (a cycle that finds the target filled or the
+problem unsolvable stops after II).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from engine.config import SystemConfig, load_config
+from engine.records import ShotRecord
+from engine.timing import PAPER_TABLE1_MS, STAGES
+
+__all__ = ["PROBLEMS", "SOFTWARE_STAGES", "register", "runtime_figures", "run_problem"]
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: The paper's three problems and the example configs that pose them.
+PROBLEMS: dict[str, str] = {
+    "1x64": "examples/chain-1x64.yaml",
+    "16x32": "examples/grid-16x32.yaml",
+    "32x64": "examples/grid-32x64.yaml",
+}
+
+#: The host's work from image in memory to the first two segments rendered (upload excluded).
+SOFTWARE_STAGES: tuple[str, ...] = ("II.detect", "II.threshold", "III.solve", "III.batch", "IV.lookup", "IV.render")
+
+
+def _stats_us(values_s: list[float]) -> dict[str, float]:
+    if not values_s:
+        return {"n": 0, "mean": float("nan"), "std": float("nan"), "median": float("nan"), "p99": float("nan"),
+                "max": float("nan")}
+    v = np.asarray(values_s) * 1e6
+    return {
+        "n": int(v.size),
+        "mean": float(v.mean()),
+        "std": float(v.std()),
+        "median": float(np.median(v)),
+        "p99": float(np.percentile(v, 99)),
+        "max": float(v.max()),
+    }
+
+
+def runtime_figures(records: list[ShotRecord], problem: str | None = None) -> dict[str, Any]:
+    """Per-stage statistics (us) and the software latency from shot records."""
+    samples: dict[str, list[float]] = {s: [] for s in STAGES}
+    software: list[float] = []
+    to_playback: list[float] = []
+    slots: list[int] = []
+    underruns = 0
+    for record in records:
+        for cycle in record.cycles:
+            rearranged = cycle.n_slots > 0
+            for stage, seconds in cycle.stage_s.items():
+                if stage in ("I.acquire", "II.detect", "II.threshold") or rearranged:
+                    samples[stage].append(seconds)
+            if rearranged:
+                software.append(sum(cycle.stage_s.get(s, 0.0) for s in SOFTWARE_STAGES))
+                to_playback.append(cycle.latency_s)
+                slots.append(cycle.n_slots)
+                underruns += cycle.underruns
+    paper = PAPER_TABLE1_MS.get(problem or "", {})
+    stages = {}
+    for stage in STAGES:
+        entry = _stats_us(samples[stage])
+        entry["paper_mean"] = paper[stage] * 1e3 if stage in paper else None
+        stages[stage] = entry
+    sw = _stats_us(software)
+    return {
+        "shots": len(records),
+        "successes": sum(1 for r in records if r.truth.get("target_filled", r.success)),
+        "rearranging_cycles": len(software),
+        "slots_median": float(np.median(slots)) if slots else float("nan"),
+        "underruns": underruns,
+        "stages": stages,
+        "software_latency_us": {k: sw[k] for k in ("mean", "median", "p99", "max")},
+        "latency_to_playback_us": {k: v for k, v in _stats_us(to_playback).items() if k != "n"},
+    }
+
+
+def problem_config(problem: str, *, seed: int | None = None) -> SystemConfig:
+    config = load_config(REPO / PROBLEMS[problem])
+    if seed is not None:
+        config = config.model_copy(update={"sim": config.sim.model_copy(update={"seed": seed})})
+    return config
+
+
+def run_problem(config: SystemConfig, shots: int) -> list[ShotRecord]:
+    """Run ``shots`` shots of ``config`` on the simulated lab, in this thread (the engine's own loop)."""
+    from drivers.sim.lab import build_sim_lab
+    from engine.engine import Engine
+
+    devices, lab = build_sim_lab(config)
+    engine = Engine(config, devices, lab=lab)
+    engine.run_shot()  # warm caches (kernels are compiled already); not counted
+    return [engine.run_shot() for _ in range(shots)]
+
+
+def _print(figures: dict[str, dict[str, Any]]) -> None:
+    for problem, fig in figures.items():
+        print(f"\n== {problem}: {fig['shots']} shots, {fig['successes']} filled (world truth), "
+              f"{fig['rearranging_cycles']} rearranging cycles, median {fig['slots_median']:.0f} slots, "
+              f"{fig['underruns']} underruns")
+        print(f"{'stage':13s} {'mean':>10s} {'std':>9s} {'median':>10s} {'p99':>10s} {'max':>10s} {'paper':>10s}   (us)")
+        for stage, s in fig["stages"].items():
+            if not s["n"]:
+                continue
+            paper = f"{s['paper_mean']:10.1f}" if s["paper_mean"] is not None else f"{'-':>10s}"
+            print(f"{stage:13s} {s['mean']:10.1f} {s['std']:9.1f} {s['median']:10.1f} {s['p99']:10.1f} "
+                  f"{s['max']:10.1f} {paper}")
+        sw = fig["software_latency_us"]
+        print(f"software latency (II + III + IV.lookup + IV.render): median {sw['median']:.1f} us, "
+              f"p99 {sw['p99']:.1f} us, max {sw['max']:.1f} us")
+
+
+def plot_stacked(figures: dict[str, dict[str, Any]], path: str | Path) -> None:
+    """A stacked bar per problem of the mean stage times (ms), ours next to the paper's."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    labels, x = [], 0
+    colors = plt.get_cmap("tab10")
+    for problem, f in figures.items():
+        for who in ("paper", "llrs"):
+            bottom = 0.0
+            for i, stage in enumerate(STAGES):
+                s = f["stages"][stage]
+                value = (s["paper_mean"] if who == "paper" else s["mean"]) if s["n"] else None
+                if value is None or not np.isfinite(value):
+                    continue
+                ms = value / 1e3
+                ax.bar(x, ms, bottom=bottom, color=colors(i % 10), label=stage if x == 0 or (x == 1 and who == "llrs") else None)
+                bottom += ms
+            labels.append(f"{problem}\n{who}")
+            x += 1
+    ax.set_xticks(range(len(labels)), labels)
+    ax.set_ylabel("mean time per rearranging cycle (ms)")
+    ax.set_title("Reconfiguration cycle by stage: the paper's Table 1 vs this system (simulated lab)")
+    handles, names = ax.get_legend_handles_labels()
+    unique = dict(zip(names, handles))
+    ax.legend(unique.values(), unique.keys(), fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    problems = [p.strip() for p in args.problems.split(",") if p.strip()]
+    unknown = [p for p in problems if p not in PROBLEMS]
+    if unknown:
+        raise SystemExit(f"llrs bench runtime: unknown problem(s) {unknown}; choose from {', '.join(PROBLEMS)}")
+    figures: dict[str, dict[str, Any]] = {}
+    for problem in problems:
+        t0 = time.perf_counter()
+        records = run_problem(problem_config(problem, seed=args.seed), args.shots)
+        figures[problem] = runtime_figures(records, problem)
+        figures[problem]["wall_s"] = time.perf_counter() - t0
+    if args.json:
+        print(json.dumps(figures))
+    else:
+        _print(figures)
+    if args.plot:
+        plot_stacked(figures, args.plot)
+    return 0
+
+
+def register(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser("runtime", help="the paper's Table 1 on the simulated lab: every stage, with p99 and max")
+    p.add_argument("--shots", type=int, default=100, help="shots per problem (default 100)")
+    p.add_argument("--problems", default=",".join(PROBLEMS), help=f"comma-separated subset of {', '.join(PROBLEMS)}")
+    p.add_argument("--seed", type=int, default=1, help="seed of the simulated lab")
+    p.add_argument("--json", action="store_true", help="print one JSON object keyed by problem")
+    p.add_argument("--plot", default=None, help="also write a stacked-bar PNG of the mean stage times here")
+    p.set_defaults(func=_cmd)

@@ -152,7 +152,7 @@ class SpectrumAWG:
         self._sample_rate_hz = 0.0
         self._n_segments = 0
         self._n_steps = 0
-        self._seg_len = np.zeros(0, dtype=np.int64)
+        self._seg_len: list[int] = []
         self._step_seg = np.zeros(0, dtype=np.int32)
         self._step_hit = np.zeros(0, dtype=bool)
         self._step_words: list[int] = []
@@ -329,7 +329,7 @@ class SpectrumAWG:
         per_segment = self.info["memory_bytes"] // (2 * n_channels * max_segments)
         self._max_seg = per_segment - per_segment % SEGMENT_ALIGN_SAMPLES
         self._min_seg = SEGMENT_MIN_SAMPLES_1CH // n_channels
-        self._seg_len = np.zeros(config.n_segments, dtype=np.int64)
+        self._seg_len = [0] * config.n_segments
         self._step_seg = np.full(config.n_steps, -1, dtype=np.int32)
         self._step_hit = np.zeros(config.n_steps, dtype=bool)
         self._step_words = [0] * config.n_steps
@@ -341,6 +341,8 @@ class SpectrumAWG:
     def write_segment(self, index: int, samples: np.ndarray) -> None:
         """DMA ``samples`` (int16[n, n_channels], C-contiguous, used in place) into segment ``index``; blocks."""
         if not 0 <= index < self._n_segments:
+            if not self._n_segments:
+                raise DeviceError("Spectrum AWG: write_segment before configure()")
             raise DeviceError(f"Spectrum AWG: segment index {index} out of range 0..{self._n_segments - 1}")
         if not isinstance(samples, np.ndarray) or samples.dtype != np.int16 or samples.ndim != 2 \
                 or samples.shape[1] != self._n_channels:
@@ -392,6 +394,8 @@ class SpectrumAWG:
         """Write one step word (takes effect the next time the card enters or leaves that step)."""
         seg, nxt, loops = step.segment, step.next_step, step.loops
         if not 0 <= index < self._n_steps:
+            if not self._n_steps:
+                raise DeviceError("Spectrum AWG: write_step before configure()")
             raise DeviceError(f"Spectrum AWG: step index {index} out of range 0..{self._n_steps - 1}")
         if not 0 <= seg < self._n_segments:
             raise DeviceError(f"Spectrum AWG: step {index}: segment {seg} out of range 0..{self._n_segments - 1}")

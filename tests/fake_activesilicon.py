@@ -11,7 +11,6 @@ Frames arrive through ``deliver(frame)`` (a fake camera's Camera Link output cal
 
 from __future__ import annotations
 
-import ctypes
 import os
 import threading
 from typing import Any
@@ -160,4 +159,4 @@ def make_fake_phx(**kwargs: Any) -> FakePhxLibrary:
     return FakePhxLibrary(**kwargs)
 
 
-__all__ = ["FakePhxLibrary", "make_fake_phx", "ctypes"]
+__all__ = ["FakePhxLibrary", "make_fake_phx"]

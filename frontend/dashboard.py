@@ -166,22 +166,22 @@ class Dashboard:
         self.f_sim.visible = self._simulated(cfg)
         self.h_message = gui.add_html("")
 
-        # Right: atoms and camera; timing and history.
+        # Left, below the controls: timing and history. Right: the atom map per cycle and the camera frame.
+        # Middle (viser's 3D canvas): the latest final state over the camera frame, to pan and zoom.
+        stats = gui.add_panel()
+        with stats.add_tab("Stage timing"):
+            self.h_timing = gui.add_html(views.timing_html([], "1x64", shots=0))
+        stats.dock_below(gui.main_panel)
         live = gui.add_panel()
         with live.add_tab("Atoms"):
             self.h_atoms = gui.add_html('<div id="atom-map" data-shot-id="" style="color:#777">waiting for the first shot…</div>')
             self.i_camera = gui.add_image(np.zeros((8, 32, 3), dtype=np.uint8), label="camera: no frame yet", format="png")
-        live.dock_right()
-        live.set_width(760)
-        stats = gui.add_panel()
-        with stats.add_tab("Timing and history"):
-            self.h_timing = gui.add_html(views.timing_html([], "1x64", shots=0))
             empty = (np.zeros(1), np.zeros(1))
             self.p_success = gui.add_uplot(
                 data=empty,
-                series=({"label": "shot"}, {"label": "defect-free % (last 20)", "stroke": views.COLOURS["in_place"], "width": 2}),
-                title="Success rate",
-                scales={"y": {"auto": False, "range": [0, 100]}},
+                series=({"label": "shot"}, {"label": "defect-free % (last 20 shots)", "stroke": views.COLOURS["in_place"], "width": 2}),
+                title="Success rate over time",
+                scales={"x": {"time": False}, "y": {"auto": False, "range": [0, 100]}},
                 height=150,
             )
             self.p_cycles = gui.add_uplot(
@@ -192,9 +192,14 @@ class Dashboard:
                      "points": {"show": True, "size": 5, "fill": views.COLOURS["ours"]}},
                 ),
                 title="Cycles per shot",
+                scales={"x": {"time": False}},
                 height=130,
             )
-        stats.dock_below(live)
+        live.dock_right()
+        live.set_width(720)
+        server.scene.set_up_direction("+z")
+        self._scene_key: tuple[int, ...] | None = None
+        self.sc_atoms: Any = None
 
         self.b_run.on_click(lambda event: self._command("run", self.service.run))
         self.b_stop.on_click(lambda event: self._command("stop", self.service.stop))
@@ -309,10 +314,11 @@ class Dashboard:
             self.h_atoms.content = views.shot_html(latest, self._positions, width_px=720)
         frame = self.service.last_frame()
         if frame is not None and frame[0] != self._shown_frame:
-            rgb, note = views.frame_to_rgb(frame[1])
+            rgb, note = views.frame_to_rgb(frame[1], min_width=600)
             self.i_camera.image = rgb
             self.i_camera.label = f"camera, final image of shot {frame[0]}: {note}"
             self._shown_frame = frame[0]
+        self._draw_scene(latest, frame if frame is not None and frame[0] == newest.shot_id else None)
         recent = shots[-self.timing_shots :]
         self.h_timing.content = views.timing_html(views.stage_rows(recent, self._column), self._column, shots=len(recent))
         ids, rate, cycles = views.history_series(shots)
@@ -320,6 +326,48 @@ class Dashboard:
         self.p_cycles.data = (ids, cycles)
         self._shown_shot = newest.shot_id
         self.updates += 1
+
+    def _draw_scene(self, shot: dict[str, Any], frame: tuple[int, np.ndarray] | None) -> None:
+        """The final state as discs over the camera frame, in trap-pitch units, seen from above.
+
+        The canvas between the side panels is tall and narrow, so a picture much wider than tall (a chain) is
+        turned a quarter turn to run top to bottom."""
+        scene = self._server.scene
+        points, colours, pitch = views.atom_points(shot["cycles"][-1]["occupancy"], shot["target"], self._positions)
+        key = (len(points), *np.round(points[[0, -1], :2].ravel(), 3).tolist())
+        if key != self._scene_key:
+            lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+            span = hi - lo
+            turn = bool(span[0] > 2 * span[1])
+            half = np.sqrt(0.5)
+            # a frame node holds the picture; a quarter turn about z (x -> -y) when turning
+            self._view = scene.add_frame(
+                "/view", show_axes=False, wxyz=(half, 0.0, 0.0, -half) if turn else (1.0, 0.0, 0.0, 0.0)
+            )
+            self.sc_atoms = scene.add_point_cloud(
+                "/view/atoms", points, colours, point_size=0.6, point_shape="circle", point_shading="flat",
+                position=(0.0, 0.0, 0.05),
+            )
+            centre = (lo + hi) / 2
+            cx, cy = (centre[1], -centre[0]) if turn else (centre[0], centre[1])
+            extent = float(max(span)) + 4.0
+            cam = self._server.initial_camera
+            cam.look_at = (float(cx), float(cy), 0.0)
+            # far enough for a narrow canvas to show the whole array
+            cam.position = (float(cx), float(cy) - 0.02 * extent, 0.75 * extent)
+            self._scene_key = key
+        else:
+            self.sc_atoms.points = points
+            self.sc_atoms.colors = colours
+        if frame is not None:
+            cfg = self.service.config
+            bx, by = cfg.camera.binning
+            rgb, _ = views.frame_to_rgb(frame[1], fold=False, max_side=2048)
+            h, w = frame[1].shape
+            scene.add_image(
+                "/view/camera", rgb, render_width=w * bx / pitch, render_height=h * by / pitch,
+                position=((w * bx / 2 - 0.5) / pitch, -(h * by / 2 - 0.5) / pitch, 0.0),
+            )
 
     def _loop(self) -> None:
         while not self._closing.is_set():

@@ -29,6 +29,7 @@ __all__ = [
     "COLOURS",
     "StageRow",
     "atom_map_svg",
+    "atom_points",
     "frame_to_rgb",
     "history_series",
     "paper_column",
@@ -126,6 +127,33 @@ def atom_map_svg(
             )
     parts.append("</svg>")
     return "".join(parts)
+
+
+def _rgb(hex_colour: str) -> tuple[int, int, int]:
+    return tuple(int(hex_colour[i : i + 2], 16) for i in (1, 3, 5))  # type: ignore[return-value]
+
+
+def atom_points(
+    occupancy: Sequence[str], target: Sequence[str], positions_xy: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The atom map for the 3D view: ``(points float32[n, 3], colours uint8[n, 3], pitch)``.
+
+    Points are in units of the trap pitch (camera pixels / ``pitch``), x to the right and y up (the camera's
+    rows run down, so y is negated); colours follow the atom map's states."""
+    occ, tgt = _bits(occupancy), _bits(target)
+    xy = np.asarray(positions_xy, dtype=np.float64)
+    d = np.diff(np.unique(np.round(xy, 3).ravel()))
+    steps = [np.min(np.abs(np.diff(np.unique(np.round(xy[:, a], 3))))) for a in (0, 1) if np.unique(xy[:, a]).size > 1]
+    pitch = float(min(steps)) if steps else float(d[d > 0].min()) if np.any(d > 0) else 1.0
+    points = np.zeros((xy.shape[0], 3), dtype=np.float32)
+    points[:, 0] = xy[:, 0] / pitch
+    points[:, 1] = -xy[:, 1] / pitch
+    state = np.where(occ & tgt, 0, np.where(tgt, 1, np.where(occ, 2, 3)))
+    palette = np.array(
+        [_rgb(COLOURS["in_place"]), _rgb(COLOURS["missing"]), _rgb(COLOURS["spare"]), _rgb(COLOURS["empty"])],
+        dtype=np.uint8,
+    )
+    return points, palette[state], pitch
 
 
 def _legend() -> str:
@@ -373,18 +401,21 @@ def _fold(frame: np.ndarray, *, target_aspect: float = 3.0) -> tuple[np.ndarray,
     return np.concatenate([strips, gap], axis=1).reshape(best * (h + 1), w // best)[:-1], best
 
 
-def frame_to_rgb(frame: np.ndarray, *, max_side: int = 1024) -> tuple[np.ndarray, str]:
+def frame_to_rgb(
+    frame: np.ndarray, *, max_side: int = 1024, fold: bool = True, min_width: int = 0
+) -> tuple[np.ndarray, str]:
     """A camera frame (raw counts) as an RGB picture for people, and a note on how it was drawn.
 
     Counts are scaled between the 1st and 99.8th percentile (the background and the brightest atoms) with a
     square-root stretch; very wide strips (a chain's 16 x 1024 ROI) are folded into stacked strips so the
-    atoms stay visible; large frames are downsampled by whole factors to at most ``max_side`` pixels.
+    atoms stay visible (unless ``fold`` is false); large frames are downsampled by whole factors to at most
+    ``max_side`` pixels, small ones enlarged by whole factors to at least ``min_width`` pixels.
     """
     img = np.asarray(frame, dtype=np.float64)
     lo, hi = np.percentile(img, [1.0, 99.8])
     hi = max(hi, lo + 1.0)
     scaled = np.sqrt(np.clip((img - lo) / (hi - lo), 0.0, 1.0))
-    folded, k = _fold(scaled)
+    folded, k = _fold(scaled) if fold else (scaled, 1)
     step = max(1, math.ceil(max(folded.shape) / max_side))
     if step > 1:
         h, w = (folded.shape[0] // step) * step, (folded.shape[1] // step) * step
@@ -392,6 +423,9 @@ def frame_to_rgb(frame: np.ndarray, *, max_side: int = 1024) -> tuple[np.ndarray
     gap = np.isnan(folded)
     rgb = _LUT[np.nan_to_num(folded * 255, nan=0).astype(np.uint8)]
     rgb[gap] = 255
+    grow = max(1, min_width // rgb.shape[1]) if step == 1 else 1
+    if grow > 1:
+        rgb = rgb.repeat(grow, axis=0).repeat(grow, axis=1)
     h, w = frame.shape
     note = f"{w}×{h} px, counts {lo:.0f}–{hi:.0f}"
     if k > 1:

@@ -11,6 +11,8 @@ What is drawn is computed by the plain functions of ``frontend.views``.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import threading
 from collections import OrderedDict
@@ -113,7 +115,8 @@ class Dashboard:
     def start(self) -> int:
         import viser  # imported here: the engine and the API work without a dashboard
 
-        self._server = viser.ViserServer(host=self.host, port=self.port, label="LLRS lab", verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner; llrs serve prints the URLs
+            self._server = viser.ViserServer(host=self.host, port=self.port, label="LLRS lab", verbose=False)
         self.port = self._server.get_port()
         self._build()
         self.service.add_listener(self._on_shot)

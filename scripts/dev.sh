@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Set up the project's virtual environment (once) and run it.
+#   bash scripts/dev.sh serve [llrs serve arguments] the lab server on the simulated lab: dashboard + REST API
 #   bash scripts/dev.sh run   [llrs run arguments]   a few shots on the simulated lab
-#   bash scripts/dev.sh test  [pytest arguments]     the whole test suite
-# Needs only Python 3.11+; installs python3-venv through apt when Debian's Python lacks it.
+#   bash scripts/dev.sh test  [pytest arguments]     the whole test suite (installs Chromium for the browser test)
+# Needs only Python 3.11+; installs python3-venv (and, for `test`, chromium) through apt when missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -27,6 +28,16 @@ ensure_venv() {
     fi
 }
 
+# The dashboard's browser test drives Debian's Chromium (playwright cannot download browsers here).
+ensure_chromium() {
+    if [ -x /usr/bin/chromium ] || [ -n "${LLRS_CHROMIUM:-}" ]; then return 0; fi
+    echo "[dev.sh] installing Debian's chromium for the dashboard's browser test" >&2
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    if ! { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null; }; then
+        echo "[dev.sh] could not install chromium; the browser test will be skipped" >&2
+    fi
+}
+
 cmd=${1:-run}; shift || true
 case "$cmd" in
     run)
@@ -34,11 +45,16 @@ case "$cmd" in
         if [ $# -eq 0 ]; then set -- --config examples/chain-1x64.yaml --shots 20; fi
         exec "$VENV/bin/llrs" run "$@"
         ;;
+    serve)
+        ensure_venv
+        exec "$VENV/bin/llrs" serve "$@"
+        ;;
     test)
         ensure_venv
+        ensure_chromium
         exec "$VENV/bin/python" -m pytest "$@"
         ;;
     *)
-        echo "usage: bash scripts/dev.sh {run|test} [args]" >&2; exit 2
+        echo "usage: bash scripts/dev.sh {serve|run|test} [args]" >&2; exit 2
         ;;
 esac

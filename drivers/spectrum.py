@@ -211,6 +211,8 @@ class SpectrumAWG:
         self._R_STATUS = spcm.SPC_SEQMODE_STATUS
         self._R_ASYNCIO = spcm.SPCM_XX_ASYNCIO
         self._C_DMA = spcm.M2CMD_DATA_STARTDMA | spcm.M2CMD_DATA_WAITDMA
+        self._C_STARTDMA = spcm.M2CMD_DATA_STARTDMA
+        self._C_WAITDMA = spcm.M2CMD_DATA_WAITDMA
         self._BUF_DATA = spcm.SPCM_BUF_DATA
         self._DIR_PCTOCARD = spcm.SPCM_DIR_PCTOCARD
         self._ERR_OK = spcm.ERR_OK
@@ -340,6 +342,21 @@ class SpectrumAWG:
 
     def write_segment(self, index: int, samples: np.ndarray) -> None:
         """DMA ``samples`` (int16[n, n_channels], C-contiguous, used in place) into segment ``index``; blocks."""
+        self._upload(index, samples, self._C_DMA)
+
+    def start_upload(self, index: int, samples: np.ndarray) -> None:
+        """Start the DMA of ``samples`` into segment ``index`` (``M2CMD_DATA_STARTDMA``) and return; the card
+        reads ``samples`` in place until ``wait_upload`` returns."""
+        self._upload(index, samples, self._C_STARTDMA)
+
+    def wait_upload(self, *, timeout_s: float) -> None:
+        """``M2CMD_DATA_WAITDMA``: block until the DMA started last is done (the card's own timeout applies)."""
+        try:
+            self._card.cmd(self._C_WAITDMA)
+        except Exception as err:  # noqa: BLE001 - SpcmException / SpcmTimeout
+            raise DeviceError(f"Spectrum AWG: waiting for the segment upload failed: {err}") from None
+
+    def _upload(self, index: int, samples: np.ndarray, command: int) -> None:
         if not 0 <= index < self._n_segments:
             if not self._n_segments:
                 raise DeviceError("Spectrum AWG: write_segment before configure()")
@@ -369,7 +386,7 @@ class SpectrumAWG:
             )
             if err != self._ERR_OK:
                 raise DeviceError(f"Spectrum AWG: defining the DMA buffer for segment {index} failed (error {err:#x})")
-            card.cmd(self._C_DMA)
+            card.cmd(command)
         except DeviceError:
             raise
         except Exception as err:  # noqa: BLE001 - SpcmException / SpcmTimeout

@@ -62,7 +62,7 @@ class ToneAxisConfig(_Model):
 
     start_hz: PositiveFloat = 80e6
     spacing_hz: PositiveFloat = 1e6
-    amplitude: Annotated[float, Field(gt=0, le=1)] = 0.02
+    amplitude: Annotated[float, Field(gt=0, le=1)] = 0.015
     phases: Literal["schroeder", "zero"] = "schroeder"
     csv: str | None = Field(default=None, description="path to an alpha,nu,phi CSV; overrides the comb")
 
@@ -409,6 +409,12 @@ class SystemConfig(_Model):
                         f"array.{axis}.{name} = {getattr(tones, name):g} Hz must be a multiple of "
                         f"1/slot_duration_s = {grid_hz:g} Hz so static tones stay phase-continuous"
                     )
+            if tones.amplitude * self._n_tones(axis) > 1.0:
+                raise ValueError(
+                    f"array.{axis}.amplitude = {tones.amplitude:g} x {self._n_tones(axis)} tones = "
+                    f"{tones.amplitude * self._n_tones(axis):g} of full scale: the AWG would clip when every tone "
+                    f"is on; use at most {1.0 / self._n_tones(axis):.4g}"
+                )
             top = tones.start_hz + tones.spacing_hz * (self._n_tones(axis) - 1)
             if top >= wf.sample_rate_hz / 2:
                 raise ValueError(

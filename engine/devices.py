@@ -96,6 +96,15 @@ class SequenceAWG(Protocol):
         """Upload ``samples`` into data-memory segment ``index`` (blocking until the transfer is done)."""
         ...
 
+    def start_upload(self, index: int, samples: np.ndarray) -> None:
+        """Start a DMA of ``samples`` into segment ``index`` and return at once, so the host can render the
+        next segment meanwhile. ``samples`` must stay untouched until ``wait_upload`` returns."""
+        ...
+
+    def wait_upload(self, *, timeout_s: float) -> None:
+        """Block until the upload started last is in card memory; raises ``DeviceError`` after ``timeout_s``."""
+        ...
+
     def write_step(self, index: int, step: StepInfo) -> None: ...
 
     def start(self, entry_step: int) -> None:

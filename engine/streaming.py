@@ -119,14 +119,15 @@ class Streamer:
         self.home = self.layout.idle_step  # the idle step the card rests in between plans
         slot = bank.slot_samples
         ch = bank.n_channels
-        self._segment_buf = np.zeros((self.slots_per_segment * slot, ch), dtype=np.int16)
+        # two segment buffers: the host renders segment k+1 into one while the card's DMA reads segment k
+        self._segment_bufs = [np.zeros((self.slots_per_segment * slot, ch), dtype=np.int16) for _ in range(2)]
         self._short_buf = np.zeros((2 * self.slots_per_segment * slot, ch), dtype=np.int16)
         self._failsafe_buf = np.zeros((slot, ch), dtype=np.int16)
         self._keys = np.zeros(bank.max_keys(2 * self.slots_per_segment), dtype=np.int64)
         # idle + K control + K failsafe + the short-path segment, at their largest
         total = (
             self._failsafe_buf.nbytes
-            + self.layout.n_control * (self._segment_buf.nbytes + self._failsafe_buf.nbytes)
+            + self.layout.n_control * (self._segment_bufs[0].nbytes + self._failsafe_buf.nbytes)
             + self._short_buf.nbytes
         )
         if total > config.awg.max_memory_bytes:
@@ -234,23 +235,30 @@ class Streamer:
     def _slot_s(self) -> float:
         return self.bank.slot_samples / self.awg.sample_rate_hz
 
-    def _upload_segment(self, ops: Operations, k: int, n_segments: int, timer: StageTimer | None) -> None:
-        """Render and upload control segment k and its failsafe, and point its step at the failsafe (or the
-        plan's end step)."""
-        lay = self.layout
+    def _render_segment(self, ops: Operations, k: int, timer: StageTimer | None) -> int:
+        """Look up and render control segment k into buffer ``k % 2``; returns its number of slots."""
         first = k * self.slots_per_segment
         count = min(self.slots_per_segment, len(ops) - first)
-        self._lookup_and_render(ops, first, count, self._segment_buf, timer)
-        self.awg.write_segment(lay.control_segment(k), self._segment_buf[: count * self.bank.slot_samples])
+        self._lookup_and_render(ops, first, count, self._segment_bufs[k % 2], timer)
+        return count
+
+    def _start_upload(self, k: int, count: int) -> None:
+        buf = self._segment_bufs[k % 2]
+        self.awg.start_upload(self.layout.control_segment(k), buf[: count * self.bank.slot_samples])
+
+    def _finish_upload(self, ops: Operations, k: int, count: int, n_segments: int) -> None:
+        """Wait for control segment k's DMA, upload its failsafe, and point its step at the failsafe (or at
+        the plan's end step)."""
+        lay = self.layout
+        self.awg.wait_upload(timeout_s=self.timeout_s)
         last = k == n_segments - 1
         if not last:
+            first = k * self.slots_per_segment
             self.bank.render_failsafe(ops, first + count - 1, self._failsafe_buf)
             self.awg.write_segment(lay.failsafe_segment(k), self._failsafe_buf)
             self.awg.write_step(lay.failsafe_step(k), StepInfo(segment=lay.failsafe_segment(k), next_step=lay.failsafe_step(k)))
         next_step = self.away if last else lay.failsafe_step(k)
         self.awg.write_step(lay.control_step(k), StepInfo(segment=lay.control_segment(k), next_step=next_step))
-        if timer is not None:
-            timer.lap("IV.upload")
 
     def _link(self, k: int) -> None:
         """Point control step k-1 and its failsafe at control step k (segment k is in memory)."""
@@ -260,24 +268,36 @@ class Streamer:
         self.awg.write_step(lay.failsafe_step(k - 1), StepInfo(segment=lay.failsafe_segment(k - 1), next_step=nxt))
 
     def _stream_segments(self, ops: Operations, report: StreamReport, timer: StageTimer | None) -> None:
+        """Segments 0 and 1 before playback starts, then one segment ahead of the card; every DMA overlaps
+        the rendering of the next segment."""
         lay = self.layout
         n_segments = -(-len(ops) // self.slots_per_segment)
         report.n_segments = n_segments
         t0 = self.clock.now_s()
         if timer is not None:
             timer.start()
-        self._upload_segment(ops, 0, n_segments, timer)
-        self._upload_segment(ops, 1, n_segments, timer)
+        count0 = self._render_segment(ops, 0, timer)
+        self._start_upload(0, count0)
+        count1 = self._render_segment(ops, 1, timer)  # while segment 0 uploads
+        self._finish_upload(ops, 0, count0, n_segments)
+        self._start_upload(1, count1)
+        self._finish_upload(ops, 1, count1, n_segments)
         self._link(1)
+        if timer is not None:
+            timer.lap("IV.upload")
         self._start(lay.control_step(0), report, t0)
         if timer is not None:
             timer.lap("IV.sequence")
-        for k in range(2, n_segments):
-            self._upload_segment(ops, k, n_segments, None)
-            if lay.is_failsafe_step(self.awg.current_step()):
-                report.underruns += 1
-            self._link(k)
+        if n_segments > 2:
+            count = self._render_segment(ops, 2, None)
+            for k in range(2, n_segments):
+                self._start_upload(k, count)
+                count_next = self._render_segment(ops, k + 1, None) if k + 1 < n_segments else 0
+                self._finish_upload(ops, k, count, n_segments)
+                if lay.is_failsafe_step(self.awg.current_step()):
+                    report.underruns += 1
+                self._link(k)
+                count = count_next
         self._finish(len(ops))
         if timer is not None:
             timer.lap("V.stream")
-

@@ -125,6 +125,7 @@ class SimAWG:
             self._pass_segment = -1
             self._fault: str | None = None
             self._last_trigger_s: float | None = None
+            self._dma_free_s = -math.inf  # when the DMA engine finishes the uploads queued so far
 
     def set_system_config(self, config: SystemConfig) -> None:
         """Adopt a new system configuration (array, tones, waveforms) and reconfigure the card."""
@@ -136,43 +137,76 @@ class SimAWG:
     # --- protocol: memory writes -----------------------------------------------------------------------
 
     def write_segment(self, index: int, samples: np.ndarray) -> None:
+        """Upload ``samples`` into segment ``index`` and wait until they are in card memory."""
+        self.start_upload(index, samples)
+        self.wait_upload(timeout_s=math.inf)
+
+    def start_upload(self, index: int, samples: np.ndarray) -> None:
+        """Queue a DMA of ``samples`` into segment ``index`` and return at once (one DMA engine: uploads run
+        one after another). The data count from when the transfer completes; ``wait_upload`` waits for it."""
         with self._lock:
             self._sync()
-            if not 0 <= index < len(self._segments):
-                raise DeviceError(f"sim AWG: segment index {index} out of range 0..{len(self._segments) - 1}")
-            if not isinstance(samples, np.ndarray) or samples.dtype != np.int16:
-                dtype = getattr(samples, "dtype", type(samples).__name__)
-                raise DeviceError(f"sim AWG: segment {index}: samples must be int16, got {dtype}")
-            if samples.ndim != 2 or samples.shape[1] != self._n_channels or samples.shape[0] == 0:
-                raise DeviceError(
-                    f"sim AWG: segment {index}: samples must be int16[n > 0, {self._n_channels}], got shape {samples.shape}"
-                )
-            if self._running and self._pass_segment == index:
-                raise DeviceError(f"sim AWG: segment {index} is playing right now (step {self._step}); it cannot be written")
-            used = sum(s.data.nbytes for i, s in enumerate(self._latest_segments()) if s is not None and i != index)
-            if used + samples.nbytes > self.awg_config.max_memory_bytes:
-                raise DeviceError(
-                    f"sim AWG: segment {index} ({samples.nbytes} B) does not fit: {used} B of "
-                    f"{self.awg_config.max_memory_bytes} B already used"
-                )
-            if self.fail_next_upload or self.fail_uploads:
-                self.fail_next_upload = False
-                raise DeviceError(f"sim AWG: injected upload failure (segment {index}): the DMA transfer was refused")
-            t_begin = self.clock.now_s()
-            seg = _Segment(samples.copy(), t_begin, t_begin)
-            with self.clock.paused():  # the simulator's decoding is not the card's time
+            with self.clock.paused():  # checks, copying and decoding are the simulator's work, not the card's
+                self._check_segment(index, samples)
+                if self.fail_next_upload or self.fail_uploads:
+                    self.fail_next_upload = False
+                    raise DeviceError(
+                        f"sim AWG: injected upload failure (segment {index}): the DMA transfer was refused"
+                    )
+                now = self.clock.now_s()
+                t_begin = max(now, self._dma_free_s)
+                seg = _Segment(samples.copy(), t_begin, t_begin)
                 self._decoded(seg)
-            cost = (
-                samples.nbytes / self.awg_config.upload_bytes_per_s
-                + abs(float(self.rng.normal(0.0, self.awg_config.upload_jitter_s)))
-                + self.upload_delay_s
+                cost = (
+                    samples.nbytes / self.awg_config.upload_bytes_per_s
+                    + abs(float(self.rng.normal(0.0, self.awg_config.upload_jitter_s)))
+                    + self.upload_delay_s
+                )
+                seg.t_ready_s = t_begin + cost
+                self._dma_free_s = seg.t_ready_s
+                self._queue(seg.t_ready_s, 0, index, seg)
+                self.uploads += 1
+                self.bytes_uploaded += samples.nbytes
+
+    def wait_upload(self, *, timeout_s: float) -> None:
+        """Block (in clock time) until every queued upload is in card memory."""
+        with self._lock:
+            now = self.clock.now_s()
+            if self._dma_free_s <= now:
+                return
+            if self._dma_free_s - now > timeout_s:
+                self.clock.advance(timeout_s)
+                raise DeviceError(
+                    f"sim AWG: upload still running after {timeout_s:g} s; check upload_bytes_per_s and the segment size"
+                )
+            self.clock.advance_to(self._dma_free_s)
+            self._sync()
+
+    def _queue(self, t_effective_s: float, kind: int, index: int, value: object) -> None:
+        """Add a memory write that takes effect at ``t_effective_s``, keeping ``_pending`` in time order."""
+        pos = len(self._pending)
+        while pos and self._pending[pos - 1][0] > t_effective_s:
+            pos -= 1
+        self._pending.insert(pos, (t_effective_s, kind, index, value))
+
+    def _check_segment(self, index: int, samples: np.ndarray) -> None:
+        if not 0 <= index < len(self._segments):
+            raise DeviceError(f"sim AWG: segment index {index} out of range 0..{len(self._segments) - 1}")
+        if not isinstance(samples, np.ndarray) or samples.dtype != np.int16:
+            dtype = getattr(samples, "dtype", type(samples).__name__)
+            raise DeviceError(f"sim AWG: segment {index}: samples must be int16, got {dtype}")
+        if samples.ndim != 2 or samples.shape[1] != self._n_channels or samples.shape[0] == 0:
+            raise DeviceError(
+                f"sim AWG: segment {index}: samples must be int16[n > 0, {self._n_channels}], got shape {samples.shape}"
             )
-            self.clock.advance(cost)
-            seg.t_ready_s = t_begin + cost
-            self._pending.append((seg.t_ready_s, 0, index, seg))
-            data = seg.data
-            self.uploads += 1
-            self.bytes_uploaded += data.nbytes
+        if self._running and self._pass_segment == index:
+            raise DeviceError(f"sim AWG: segment {index} is playing right now (step {self._step}); it cannot be written")
+        used = sum(s.data.nbytes for i, s in enumerate(self._latest_segments()) if s is not None and i != index)
+        if used + samples.nbytes > self.awg_config.max_memory_bytes:
+            raise DeviceError(
+                f"sim AWG: segment {index} ({samples.nbytes} B) does not fit: {used} B of "
+                f"{self.awg_config.max_memory_bytes} B already used"
+            )
 
     def write_step(self, index: int, step: StepInfo) -> None:
         with self._lock:
@@ -189,7 +223,7 @@ class SimAWG:
             cost = self.awg_config.step_write_s + self.step_write_delay_s
             t_eff = self.clock.now_s() + cost
             self.clock.advance(cost)
-            self._pending.append((t_eff, 1, index, step))
+            self._queue(t_eff, 1, index, step)
 
     # --- protocol: playback ----------------------------------------------------------------------------
 

@@ -205,8 +205,25 @@ class Engine:
                 "occupancy_rows": ["".join("1" if v else "0" for v in row) for row in truth],
                 "target_filled": bool(np.all(truth[p.target])),
             }
+        try:
+            self.devices.awg.pulse("resume")  # tell the lab's sequencer the array is ready
+        except DeviceError as err:
+            record.fault = record.fault or f"DeviceError: resume pulse: {err}"
         self.shots_done += 1
         return record
+
+    def wait_trigger(self, *, timeout_s: float) -> bool:
+        """Between shots, armed on ``loop.trigger: hardware``: wait for the sequencer's trigger line at the AWG.
+
+        True if it fired. Raises ``DeviceError`` when the AWG has no trigger input to wait on.
+        """
+        wait = getattr(self.devices.awg, "wait_trigger", None)
+        if wait is None:
+            raise DeviceError(
+                f"{type(self.devices.awg).__name__} cannot wait for a hardware trigger; "
+                "set loop.trigger to 'software' and trigger shots over REST"
+            )
+        return bool(wait(timeout_s=timeout_s))
 
     def _cycle(self, p: _Pipeline, cycle: int, latencies: np.ndarray, plan_stats: np.ndarray) -> Outcome | None:
         dev = self.devices

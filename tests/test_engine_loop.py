@@ -148,3 +148,15 @@ def test_occupancy_history_is_what_was_imaged(chain_engine) -> None:
     truth = np.array([[c == "1" for c in truth_rows[0]]])
     # detection fidelity is > 99.9 %, so the last image agrees with the world (lossless: nothing moved since)
     assert (last != truth).sum() <= 1
+
+
+def test_resume_pulse_after_every_shot_and_hardware_trigger(chain_engine) -> None:
+    engine, lab = chain_engine
+    before = sum(1 for line, _ in lab.awg.pulses if line == "resume")
+    engine.run_shot()
+    engine.run_shot()
+    assert sum(1 for line, _ in lab.awg.pulses if line == "resume") == before + 2
+    assert engine.wait_trigger(timeout_s=0.01) is False
+    lab.awg.force_trigger()  # the sequencer's line
+    assert engine.wait_trigger(timeout_s=0.01) is True
+    assert engine.wait_trigger(timeout_s=0.01) is False  # taken once

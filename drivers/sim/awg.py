@@ -91,6 +91,7 @@ class SimAWG:
         self.torn_plays = 0  # passes that started while their segment was being uploaded
         self.pulses: list[tuple[str, float]] = []
         self._lock = threading.RLock()
+        self._trigger_in = threading.Event()
         n_ch = 1 if config.array.trap_source == "aod" else 2
         self.configure(config.awg, n_channels=n_ch, sample_rate_hz=config.waveforms.sample_rate_hz)
 
@@ -278,10 +279,19 @@ class SimAWG:
             self.pulses.append((line, self.clock.now_s()))
 
     def force_trigger(self) -> None:
-        """A trigger event now: an ``on_trigger`` step that is waiting ends its loop after the current pass."""
+        """A trigger event now (the sequencer's line): an ``on_trigger`` step that is waiting ends its loop
+        after the current pass, and ``wait_trigger`` returns True."""
         with self._lock:
             self._sync()
             self._last_trigger_s = self.clock.now_s()
+        self._trigger_in.set()
+
+    def wait_trigger(self, *, timeout_s: float) -> bool:
+        """Wait (wall time: triggers come from outside) up to ``timeout_s`` for a trigger since the last one
+        taken; True if one came, and it is taken."""
+        fired = self._trigger_in.wait(timeout_s)
+        self._trigger_in.clear()
+        return fired
 
     def sync(self) -> None:
         """Bring playback and the world up to the clock's now."""

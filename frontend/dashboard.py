@@ -313,14 +313,14 @@ class Dashboard:
             return
         shots = list(self._dicts.values())
         latest = self._dicts[newest.shot_id]
-        if len(self._positions) == len(latest["target"]) * len(latest["target"][0]):
-            self.h_atoms.content = views.shot_html(latest, self._positions, width_px=720)
         frame = self.service.last_frame()
         if frame is not None and frame[0] != self._shown_frame:
             rgb, note = views.frame_to_rgb(frame[1], min_width=600)
             self.i_camera.image = rgb
             self.i_camera.label = f"camera, final image of shot {frame[0]}: {note}"
             self._shown_frame = frame[0]
+        if len(self._positions) == len(latest["target"]) * len(latest["target"][0]):
+            self.h_atoms.content = views.shot_html(latest, self._positions, width_px=720)
         self._draw_scene(latest, frame if frame is not None and frame[0] == newest.shot_id else None)
         recent = shots[-self.timing_shots :]
         self.h_timing.content = views.timing_html(views.stage_rows(recent, self._column), self._column, shots=len(recent))
@@ -338,8 +338,11 @@ class Dashboard:
         scene = self._server.scene
         points, colours, pitch = views.atom_points(shot["cycles"][-1]["occupancy"], shot["target"], self._positions)
         key = (len(points), *np.round(points[[0, -1], :2].ravel(), 3).tolist())
+        marked = np.any(colours != np.array(views._rgb(views.COLOURS["empty"]), dtype=np.uint8), axis=1)
+        all_points = points
+        points, colours = points[marked], colours[marked]  # empty traps: the camera frame shows them
         if key != self._scene_key:
-            lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+            lo, hi = all_points[:, :2].min(axis=0), all_points[:, :2].max(axis=0)
             span = hi - lo
             turn = bool(span[0] > 2 * span[1])
             half = np.sqrt(0.5)
@@ -348,7 +351,7 @@ class Dashboard:
                 "/view", show_axes=False, wxyz=(half, 0.0, 0.0, -half) if turn else (1.0, 0.0, 0.0, 0.0)
             )
             self.sc_atoms = scene.add_point_cloud(
-                "/view/atoms", points, colours, point_size=0.6, point_shape="circle", point_shading="flat",
+                "/view/atoms", points, colours, point_size=0.4, point_shape="circle", point_shading="flat",
                 position=(0.0, 0.0, 0.05),
             )
             centre = (lo + hi) / 2
@@ -367,9 +370,9 @@ class Dashboard:
             bx, by = cfg.camera.binning
             rgb, _ = views.frame_to_rgb(frame[1], fold=False, max_side=2048)
             h, w = frame[1].shape
-            scene.add_image(
+            scene.add_image(  # turned over about x, so that frame row 0 is at the top (largest y)
                 "/view/camera", rgb, render_width=w * bx / pitch, render_height=h * by / pitch,
-                position=((w * bx / 2 - 0.5) / pitch, -(h * by / 2 - 0.5) / pitch, 0.0),
+                position=((w * bx / 2 - 0.5) / pitch, -(h * by / 2 - 0.5) / pitch, 0.0), wxyz=(0.0, 1.0, 0.0, 0.0),
             )
 
     def _loop(self) -> None:

@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -145,33 +146,32 @@ class SimAWG:
     def start_upload(self, index: int, samples: np.ndarray) -> None:
         """Queue a DMA of ``samples`` into segment ``index`` and return at once (one DMA engine: uploads run
         one after another). The data count from when the transfer completes; ``wait_upload`` waits for it."""
-        with self._lock:
+        with self._card():
             self._sync()
-            with self.clock.paused():  # checks, copying and decoding are the simulator's work, not the card's
-                self._check_segment(index, samples)
-                if self.fail_next_upload or self.fail_uploads:
-                    self.fail_next_upload = False
-                    raise DeviceError(
-                        f"sim AWG: injected upload failure (segment {index}): the DMA transfer was refused"
-                    )
-                now = self.clock.now_s()
-                t_begin = max(now, self._dma_free_s)
-                seg = _Segment(samples.copy(), t_begin, t_begin)
-                self._decoded(seg)
-                cost = (
-                    samples.nbytes / self.awg_config.upload_bytes_per_s
-                    + abs(float(self.rng.normal(0.0, self.awg_config.upload_jitter_s)))
-                    + self.upload_delay_s
+            self._check_segment(index, samples)
+            if self.fail_next_upload or self.fail_uploads:
+                self.fail_next_upload = False
+                raise DeviceError(
+                    f"sim AWG: injected upload failure (segment {index}): the DMA transfer was refused"
                 )
-                seg.t_ready_s = t_begin + cost
-                self._dma_free_s = seg.t_ready_s
-                self._queue(seg.t_ready_s, 0, index, seg)
-                self.uploads += 1
-                self.bytes_uploaded += samples.nbytes
+            now = self.clock.now_s()
+            t_begin = max(now, self._dma_free_s)
+            seg = _Segment(samples.copy(), t_begin, t_begin)
+            self._decoded(seg)
+            cost = (
+                samples.nbytes / self.awg_config.upload_bytes_per_s
+                + abs(float(self.rng.normal(0.0, self.awg_config.upload_jitter_s)))
+                + self.upload_delay_s
+            )
+            seg.t_ready_s = t_begin + cost
+            self._dma_free_s = seg.t_ready_s
+            self._queue(seg.t_ready_s, 0, index, seg)
+            self.uploads += 1
+            self.bytes_uploaded += samples.nbytes
 
     def wait_upload(self, *, timeout_s: float) -> None:
         """Block (in clock time) until every queued upload is in card memory."""
-        with self._lock:
+        with self._card():
             now = self.clock.now_s()
             if self._dma_free_s <= now:
                 return
@@ -210,7 +210,7 @@ class SimAWG:
             )
 
     def write_step(self, index: int, step: StepInfo) -> None:
-        with self._lock:
+        with self._card():
             self._sync()
             n_steps, n_seg = len(self._steps), len(self._segments)
             if not 0 <= index < n_steps:
@@ -229,7 +229,7 @@ class SimAWG:
     # --- protocol: playback ----------------------------------------------------------------------------
 
     def start(self, entry_step: int) -> None:
-        with self._lock:
+        with self._card():
             self._sync()
             self._commit_pending(math.inf)  # the card starts from memory as written
             if not 0 <= entry_step < len(self._steps) or self._steps[entry_step] is None:
@@ -240,19 +240,19 @@ class SimAWG:
             self._enter(entry_step, now)
 
     def stop(self) -> None:
-        with self._lock:
+        with self._card():
             if self._running:
                 self._sync()
             self._running = False
 
     def current_step(self) -> int:
         """The step playing now, or -1 when stopped."""
-        with self._lock:
+        with self._card():
             self._sync()
             return self._step if self._running else -1
 
     def wait_for_step(self, step: int, *, timeout_s: float) -> None:
-        with self._lock:
+        with self._card():
             self._sync()
             if not self._running:
                 raise DeviceError(f"sim AWG: waiting for step {step} but playback is stopped")
@@ -272,7 +272,7 @@ class SimAWG:
 
     def pulse(self, line: str) -> None:
         """Record a pulse on an async output line ('camera' or 'resume') at the current time."""
-        with self._lock:
+        with self._card():
             if line not in ("camera", "resume"):
                 raise DeviceError(f"sim AWG: unknown pulse line {line!r}; use 'camera' or 'resume'")
             self._sync()
@@ -281,7 +281,7 @@ class SimAWG:
     def force_trigger(self) -> None:
         """A trigger event now (the sequencer's line): an ``on_trigger`` step that is waiting ends its loop
         after the current pass, and ``wait_trigger`` returns True."""
-        with self._lock:
+        with self._card():
             self._sync()
             self._last_trigger_s = self.clock.now_s()
         self._trigger_in.set()
@@ -328,6 +328,13 @@ class SimAWG:
             return view
 
     # --- internals -------------------------------------------------------------------------------------
+
+    @contextmanager
+    def _card(self) -> Iterator[None]:
+        """One protocol call: the card's lock, and the clock frozen while the simulator computes (checks,
+        copies, decoding, replay), so only the modelled device times (``clock.advance``) count as card time."""
+        with self._lock, self.clock.paused():
+            yield
 
     def _latest_segments(self) -> list[_Segment | None]:
         latest = list(self._segments)

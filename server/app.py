@@ -356,16 +356,20 @@ def create_app(
             404: {**_ERR, "description": "no such shot, or no image kept for that cycle"},
             422: _NOT_FOUND[422],
         },
-        summary="A cycle's camera frame as PNG (only when images were kept)",
+        summary="A cycle's camera frame as PNG: the final frame of recent shots, every cycle's if images are kept",
     )
     def get_image(shot_id: int, cycle: Annotated[int, Path(ge=0)]) -> Response:
         record = service.get_shot(shot_id)
         if record is None:
             raise HTTPException(404, detail=f"shot {shot_id} is not held by the server")
-        images = record.images or []
-        if cycle >= len(images):
-            raise HTTPException(404, detail=f"shot {shot_id} kept no image for cycle {cycle} ({len(images)} kept)")
-        return Response(content=encode_png(images[cycle]), media_type="image/png")
+        image = service.frame(shot_id, cycle)
+        if image is None:
+            raise HTTPException(
+                404,
+                detail=f"no frame kept for shot {shot_id} cycle {cycle}: the server keeps the final frame "
+                f"(cycle {len(record.cycles) - 1}) of its {service.final_frames_kept} most recent shots",
+            )
+        return Response(content=encode_png(image), media_type="image/png")
 
     @app.websocket("/api/live")
     async def live(ws: WebSocket) -> None:

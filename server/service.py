@@ -111,6 +111,8 @@ class LabService:
         self._armed = False
         self._armed_shots_left: int | None = None
         self._last_frame: tuple[int, np.ndarray] | None = None
+        self._final_frames: OrderedDict[int, np.ndarray] = OrderedDict()  # shot_id -> its last cycle's frame
+        self.final_frames_kept = 32
         self._calibrations: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self._calibration_ids = itertools.count(1)
         self._listeners: list[Callable[[ShotRecord], None]] = []
@@ -362,6 +364,19 @@ class LabService:
         with self._state_lock:
             return self._history[-1] if self._history else None
 
+    def frame(self, shot_id: int, cycle: int) -> np.ndarray | None:
+        """A camera frame of a held shot: any cycle's if the engine kept images with the record, else the last
+        cycle's (the final image) for the most recent shots. ``None`` if not kept."""
+        with self._state_lock:
+            record = self._by_id.get(shot_id)
+            if record is None:
+                return None
+            if record.images is not None and cycle < len(record.images):
+                return record.images[cycle]
+            if cycle == len(record.cycles) - 1:
+                return self._final_frames.get(shot_id)
+            return None
+
     def last_frame(self) -> tuple[int, np.ndarray] | None:
         """``(shot_id, uint16[h, w])``: the last camera frame of the latest shot (the final state), if the engine
         offers it. The array is the service's own copy; do not modify it."""
@@ -451,6 +466,9 @@ class LabService:
             self._fault = record.fault if record.outcome is Outcome.FAULT else None
             if frame is not None:
                 self._last_frame = (record.shot_id, frame)
+                self._final_frames[record.shot_id] = frame
+                while len(self._final_frames) > self.final_frames_kept:
+                    self._final_frames.popitem(last=False)
         if self._store is not None:
             self._store.put(record)
         for listener in list(self._listeners):

@@ -185,6 +185,12 @@ def test_sequencer_shot_over_rest_and_live_websocket(served: Served) -> None:
     assert r.status_code == 200
     shot = r.json()
     assert shot["atoms_loaded"] > 40 and shot["cycles"][0]["stage_us"]["I.acquire"] > 20_000  # 20 ms exposure
+    last = len(shot["cycles"]) - 1
+    png = httpx.get(f"{served.api}/api/shots/{shot['shot_id']}/image/{last}")  # the final frame is kept
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert png.content[16:24] == (1024).to_bytes(4, "big") + (16).to_bytes(4, "big")  # IHDR: 1024 x 16
+    r = httpx.get(f"{served.api}/api/shots/{shot['shot_id']}/image/{last + 1}")
+    assert r.status_code == 404 and "final frame" in r.json()["detail"]
     r = httpx.patch(served.api + "/api/config", json={"sim": {"loading_probability": 2}})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "sim", "loading_probability"]
     httpx.post(served.api + "/api/run")

@@ -14,6 +14,8 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
+import numpy as np
+
 from fastapi import Body, Depends, FastAPI, HTTPException, Path, Query, Request, WebSocket
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.middleware.cors import CORSMiddleware
@@ -373,9 +375,16 @@ def create_app(
 
     @app.websocket("/api/live")
     async def live(ws: WebSocket) -> None:
-        """Per-cycle JSON messages (``server.models.LiveCycle``): the last shot at once, then every new one."""
+        """Per-cycle JSON messages (``server.models.LiveCycle``): the last shot at once, then every new one.
+
+        Send ``{"images": true}`` to also get camera frames: after a cycle's JSON message, when the server holds
+        that cycle's frame (the final frame of every shot; every cycle's if images are kept), a JSON header
+        ``{"type": "image", "shot_id", "cycle", "shape": [h, w], "dtype": "<u2"}`` and then one binary message
+        with the raw little-endian uint16 pixels, row by row. ``{"images": false}`` stops them.
+        """
         await ws.accept()
         queue = hub.subscribe()
+        want_images = False
         last = service.last_record()
         if last is not None:
             for message in cycle_messages(last)[-queue.maxsize :]:
@@ -383,12 +392,27 @@ def create_app(
 
         async def pump() -> None:
             while True:
-                await ws.send_json(await queue.get())
+                message = await queue.get()
+                await ws.send_json(message)
+                if want_images:
+                    frame = service.frame(message["shot_id"], message["cycle"])
+                    if frame is not None:
+                        pixels = np.ascontiguousarray(frame, dtype="<u2")
+                        await ws.send_json(
+                            {"type": "image", "shot_id": message["shot_id"], "cycle": message["cycle"],
+                             "shape": list(pixels.shape), "dtype": "<u2"}
+                        )
+                        await ws.send_bytes(pixels.tobytes())
 
         sender = asyncio.create_task(pump())
         try:
-            while (await ws.receive())["type"] != "websocket.disconnect":
-                pass
+            while (event := await ws.receive())["type"] != "websocket.disconnect":
+                try:
+                    request = json.loads(event.get("text") or "null")
+                except ValueError:
+                    request = None
+                if isinstance(request, dict) and isinstance(request.get("images"), bool):
+                    want_images = request["images"]
         finally:
             sender.cancel()
             hub.unsubscribe(queue)

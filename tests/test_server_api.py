@@ -268,29 +268,38 @@ def secured(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[TestCli
 
 
 @pytest.mark.parametrize(
-    ("method", "path", "body"),
+    ("method", "path", "body", "authorized"),
     [
-        ("POST", "/api/shots", None),
-        ("POST", "/api/run", None),
-        ("POST", "/api/stop", None),
-        ("PATCH", "/api/config", {"sim": {"loading_probability": 0.5}}),
-        ("PUT", "/api/config", {}),
+        ("POST", "/api/shots", None, 200),
+        ("POST", "/api/run", None, 200),
+        ("POST", "/api/stop", None, 200),
+        ("PATCH", "/api/config", {"sim": {"loading_probability": 0.5}}, 200),
+        ("PUT", "/api/config", {}, 200),
+        ("POST", "/api/arm", None, 200),
+        ("POST", "/api/trigger", None, 409),  # authorized, but not armed
+        ("POST", "/api/calibrate/threshold", {"images": 10}, 200),
+        ("POST", "/api/calibrate/psf", {"images": 10}, 200),
+        ("POST", "/api/calibrate/apply", {"id": "psf-9"}, 404),  # authorized, no such calibration
     ],
 )
-def test_mutations_need_the_token(secured: TestClient, method: str, path: str, body: dict | None) -> None:
+def test_mutations_need_the_token(
+    secured: TestClient, method: str, path: str, body: dict | None, authorized: int
+) -> None:
     before = secured.get("/api/config").json()
     for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "Basic czNjcmV0"}):
         r = secured.request(method, path, json=body, headers=headers)
         assert r.status_code == 401, (headers, r.text)
         assert r.headers["www-authenticate"] == "Bearer"
     assert secured.get("/api/config").json() == before
-    assert secured.get("/api/status").json()["shots_done"] == 0
+    status = secured.get("/api/status").json()
+    assert status["shots_done"] == 0 and status["state"] == "idle"
+    assert secured.get("/api/calibrate").json() == []
     r = secured.request(method, path, json=body, headers={"Authorization": "Bearer s3cret"})
-    assert r.status_code == 200
+    assert r.status_code == authorized, r.text
 
 
 def test_reads_need_no_token(secured: TestClient) -> None:
-    for path in ("/", "/api/status", "/api/config", "/api/shots", "/openapi.json"):
+    for path in ("/", "/api/status", "/api/config", "/api/shots", "/api/calibrate", "/openapi.json"):
         assert secured.get(path).status_code == 200
 
 
@@ -524,3 +533,27 @@ def test_calibration_of_an_empty_array_is_409(optics_lab: tuple[LabService, Test
     c.patch("/api/config", json={"sim": {"loading_probability": 0.0}})
     r = c.post("/api/calibrate/threshold", json={"images": 10})
     assert r.status_code == 409 and "single population" in r.json()["detail"]
+
+
+def test_live_websocket_sends_frames_on_request(client: TestClient) -> None:
+    with client.websocket_connect("/api/live") as ws:
+        ws.send_text("not json")  # ignored
+        ws.send_json({"images": True})
+        time.sleep(0.05)  # let the server read the request before the shot's messages go out
+        shot = client.post("/api/shots").json()
+        cycle = ws.receive_json()
+        header = ws.receive_json()
+        pixels = np.frombuffer(ws.receive_bytes(), dtype="<u2").reshape(header["shape"])
+    assert cycle["type"] == "cycle" and cycle["shot_id"] == shot["shot_id"]
+    assert header == {"type": "image", "shot_id": shot["shot_id"], "cycle": 0, "shape": [16, 64], "dtype": "<u2"}
+    assert (pixels == 500).all()  # the stand-in's cycle-0 frame
+
+
+def test_live_websocket_sends_no_frames_unasked(client: TestClient) -> None:
+    with client.websocket_connect("/api/live") as ws:
+        first = client.post("/api/shots").json()
+        kinds = [ws.receive_json()["type"] for _ in first["cycles"]]
+        second = client.post("/api/shots").json()
+        after = ws.receive_json()
+    assert kinds == ["cycle"] * len(first["cycles"])
+    assert after["type"] == "cycle" and after["shot_id"] == second["shot_id"] and after["cycle"] == 0

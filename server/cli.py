@@ -95,6 +95,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from server import bench_runtime
 
     bench_runtime.register(bench_sub)
+    from server import bench_load
+
+    bench_load.register(bench_sub)
     from server import devices_cmd
 
     devices_cmd.register(sub)

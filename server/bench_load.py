@@ -1,0 +1,249 @@
+"""``llrs bench load``: does the engine's latency hold while people use the server?
+
+The server (engine + API, in this process, as ``llrs serve`` runs it) runs shots continuously on the
+simulated lab. First it runs with nobody connected (the idle baseline), then while a client process opens
+20 websocket subscriptions to ``/api/live`` (one of them never reads) and polls the REST API at a fixed
+total rate (status, the shot list, single shots). Reported: the software latency (II + III + IV.lookup +
+IV.render, per rearranging cycle) idle and under load, and the API's own latency percentiles.
+
+Loopback only, and bounded: each phase lasts ``--seconds`` and stops by itself; the clients run in a
+separate process so that their own Python work does not share the server's interpreter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from engine.config import load_config
+from engine.records import ShotRecord
+from server.bench_runtime import REPO, SOFTWARE_STAGES
+
+__all__ = ["register", "run_load_clients", "software_latencies_us"]
+
+
+def software_latencies_us(records: list[ShotRecord]) -> list[float]:
+    return [
+        sum(c.stage_s.get(s, 0.0) for s in SOFTWARE_STAGES) * 1e6 for r in records for c in r.cycles if c.n_slots > 0
+    ]
+
+
+def _pct(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {"n": 0, "median": float("nan"), "p99": float("nan"), "max": float("nan")}
+    v = np.asarray(values)
+    return {"n": int(v.size), "median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
+            "p99": float(np.percentile(v, 99)), "max": float(v.max())}
+
+
+# --- the client side (run in its own process) ------------------------------------------------------------
+
+
+async def _clients(base: str, seconds: float, rate_hz: float, n_ws: int) -> dict[str, Any]:
+    import httpx
+    import websockets
+
+    ws_url = base.replace("http://", "ws://") + "/api/live"
+    deadline = time.perf_counter() + seconds
+    received = [0] * n_ws
+    ws_errors: list[str] = []
+
+    async def subscriber(i: int) -> None:
+        try:
+            async with websockets.connect(ws_url, max_queue=None if i else 1) as ws:
+                while time.perf_counter() < deadline:
+                    if i == 0:  # the stalled browser tab: connected, never reads
+                        await asyncio.sleep(0.1)
+                        continue
+                    try:
+                        await asyncio.wait_for(ws.recv(), timeout=max(0.01, deadline - time.perf_counter()))
+                        received[i] += 1
+                    except asyncio.TimeoutError:
+                        break
+        except Exception as err:  # noqa: BLE001 - reported, not fatal
+            ws_errors.append(f"{type(err).__name__}: {err}")
+
+    latencies_ms: dict[str, list[float]] = {"status": [], "shots": [], "shot": []}
+    errors = 0
+    last_id: list[int] = []
+
+    async def one(client: httpx.AsyncClient, kind: str) -> None:
+        nonlocal errors
+        if kind == "status":
+            url = "/api/status"
+        elif kind == "shots" or not last_id:
+            kind, url = "shots", "/api/shots?limit=5"
+        else:
+            url = f"/api/shots/{last_id[0]}"
+        t0 = time.perf_counter()
+        try:
+            r = await client.get(url)
+            ok = r.status_code == 200
+            if ok and kind == "shots":
+                items = r.json().get("items", [])
+                if items:
+                    last_id[:] = [items[0]["shot_id"]]
+        except Exception:  # noqa: BLE001
+            ok = False
+        latencies_ms[kind].append((time.perf_counter() - t0) * 1e3)
+        if not ok:
+            errors += 1
+
+    async def poller() -> None:
+        period = 1.0 / rate_hz
+        kinds = ("status", "shots", "status", "shot")
+        tasks: set[asyncio.Task[None]] = set()
+        async with httpx.AsyncClient(base_url=base, timeout=5.0, limits=httpx.Limits(max_connections=32)) as client:
+            i = 0
+            t_next = time.perf_counter()
+            while t_next < deadline:
+                task = asyncio.create_task(one(client, kinds[i % len(kinds)]))
+                tasks.add(task)
+                task.add_done_callback(tasks.discard)
+                i += 1
+                t_next += period
+                await asyncio.sleep(max(0.0, t_next - time.perf_counter()))
+            if tasks:
+                await asyncio.wait(tasks, timeout=5.0)
+
+    await asyncio.gather(poller(), *(subscriber(i) for i in range(n_ws)))
+    all_ms = [v for vs in latencies_ms.values() for v in vs]
+    return {
+        "requests": len(all_ms),
+        "errors": errors,
+        "rate_hz": len(all_ms) / seconds,
+        "api_ms": _pct(all_ms),
+        "api_ms_by_route": {k: _pct(v) for k, v in latencies_ms.items()},
+        "ws_clients": n_ws,
+        "ws_messages_per_reading_client": float(np.mean(received[1:])) if n_ws > 1 else 0.0,
+        "ws_errors": ws_errors[:5],
+    }
+
+
+def run_load_clients(base: str, seconds: float, rate_hz: float, n_ws: int) -> dict[str, Any]:
+    return asyncio.run(_clients(base, seconds, rate_hz, n_ws))
+
+
+# --- the server side ---------------------------------------------------------------------------------------
+
+
+def _serve(config_path: str, runs_dir: str):  # noqa: ANN202 - returns (service, server, thread, url)
+    import uvicorn
+
+    from drivers.sim.lab import build_sim_lab
+    from engine.engine import Engine, EngineThread
+    from server.app import create_app
+    from server.runstore import RunStore
+    from server.service import LabService
+
+    config = load_config(config_path)
+
+    def build() -> Engine:
+        devices, lab = build_sim_lab(config)
+        return Engine(config, devices, lab=lab)
+
+    service = LabService(engine_thread=EngineThread(build), store=RunStore(runs_dir), pause_s=0.0)
+    service.start(run=False)
+    app = create_app(service=service)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning"))
+    thread = threading.Thread(target=server.run, name="bench-uvicorn", daemon=True)
+    thread.start()
+    while not server.started:
+        time.sleep(0.01)
+    port = server.servers[0].sockets[0].getsockname()[1]
+    return service, server, thread, f"http://127.0.0.1:{port}"
+
+
+def _collect(service, seconds: float) -> list[ShotRecord]:  # noqa: ANN001
+    records: list[ShotRecord] = []
+    service.add_listener(records.append)
+    time.sleep(seconds)
+    service.remove_listener(records.append)
+    return list(records)
+
+
+def run_load_bench(config_path: str, seconds: float, rate_hz: float, n_ws: int) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory(prefix="llrs-load-") as runs:
+        service, server, thread, base = _serve(config_path, runs)
+        try:
+            service.run()
+            _collect(service, min(2.0, seconds / 4))  # warm up: caches, the run file, the first shots
+            idle = _collect(service, seconds)
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "server.bench_load", "--clients-only", base, "--seconds", str(seconds),
+                 "--rate", str(rate_hz), "--ws", str(n_ws)],
+                stdout=subprocess.PIPE, cwd=REPO, text=True,
+            )
+            loaded = _collect(service, seconds)
+            out, _ = proc.communicate(timeout=seconds + 30)
+            clients = json.loads(out.strip().splitlines()[-1])
+        finally:
+            service.stop()
+            server.should_exit = True
+            thread.join(timeout=10)
+            service.close()
+    idle_us, load_us = software_latencies_us(idle), software_latencies_us(loaded)
+    result = {
+        "config": str(config_path),
+        "seconds_per_phase": seconds,
+        "idle": {"shots": len(idle), "software_latency_us": _pct(idle_us)},
+        "load": {"shots": len(loaded), "software_latency_us": _pct(load_us), "clients": clients},
+    }
+    p_idle, p_load = result["idle"]["software_latency_us"]["p99"], result["load"]["software_latency_us"]["p99"]
+    result["p99_growth"] = (p_load / p_idle - 1.0) if p_idle and np.isfinite(p_idle) else float("nan")
+    return result
+
+
+def _print(r: dict[str, Any]) -> None:
+    print(f"config {r['config']}, {r['seconds_per_phase']:g} s per phase")
+    for phase in ("idle", "load"):
+        s = r[phase]["software_latency_us"]
+        print(f"{phase:5s}: {r[phase]['shots']:4d} shots, {s['n']:4d} rearranging cycles; software latency median "
+              f"{s['median']:.1f} us, p99 {s['p99']:.1f} us, max {s['max']:.1f} us")
+    c = r["load"]["clients"]
+    a = c["api_ms"]
+    print(f"p99 growth under load: {100 * r['p99_growth']:+.1f} %")
+    print(f"API: {c['requests']} requests at {c['rate_hz']:.0f}/s, {c['errors']} errors; latency median "
+          f"{a['median']:.2f} ms, p95 {a['p95']:.2f} ms, p99 {a['p99']:.2f} ms, max {a['max']:.2f} ms")
+    print(f"websockets: {c['ws_clients']} clients (one never reads), "
+          f"{c['ws_messages_per_reading_client']:.0f} messages each; errors {c['ws_errors']}")
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    result = run_load_bench(args.config, args.seconds, args.rate, args.ws)
+    print(json.dumps(result)) if args.json else _print(result)
+    return 0
+
+
+def register(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser("load", help="engine latency idle vs while websocket and REST clients use the server")
+    p.add_argument("--config", default=str(REPO / "examples/grid-32x64.yaml"), help="configuration (default 32x64 red-rec)")
+    p.add_argument("--seconds", type=float, default=20.0, help="length of each phase (default 20 s)")
+    p.add_argument("--rate", type=float, default=200.0, help="REST requests per second in total (default 200)")
+    p.add_argument("--ws", type=int, default=20, help="websocket subscribers, one of which never reads (default 20)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_cmd)
+
+
+def _clients_main(argv: list[str]) -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--clients-only", required=True)
+    p.add_argument("--seconds", type=float, required=True)
+    p.add_argument("--rate", type=float, required=True)
+    p.add_argument("--ws", type=int, required=True)
+    a = p.parse_args(argv)
+    print(json.dumps(run_load_clients(a.clients_only, a.seconds, a.rate, a.ws)))
+
+
+if __name__ == "__main__":
+    _clients_main(sys.argv[1:])

@@ -98,6 +98,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from server import bench_load
 
     bench_load.register(bench_sub)
+    from server import bench_soak
+
+    bench_soak.register(bench_sub)
     from server import devices_cmd
 
     devices_cmd.register(sub)

@@ -98,7 +98,10 @@ def main(args: argparse.Namespace) -> int:
         )
         return 2
     try:
-        config = load_config(args.config or DEFAULT_CONFIG)
+        if args.config is None and not DEFAULT_CONFIG.exists():  # installed without the examples
+            config = SystemConfig(name="chain-1x64 (built-in default)")
+        else:
+            config = load_config(args.config or DEFAULT_CONFIG)
     except ConfigError as err:
         print(f"llrs serve: {err}", file=sys.stderr)
         return 2

@@ -154,6 +154,8 @@ class StatusOut(BaseModel):
     truth_successes: int | None = Field(default=None, description="simulated lab: shots whose world filled the target")
     last_shot: ShotSummary | None = None
     run_file: str | None = Field(default=None, description="HDF5 file the current shots go to")
+    unrecorded_shots: int = Field(default=0, description="shots that could not be written to the run file")
+    recording_error: str | None = Field(default=None, description="why the last shot could not be written")
 
 
 class LiveCycle(BaseModel):

@@ -22,6 +22,7 @@ Writing happens on a thread of its own: the engine only puts a record on a queue
 
 from __future__ import annotations
 
+import errno
 import json
 import queue
 import threading
@@ -135,7 +136,8 @@ class RunStore:
         self._queue: queue.Queue[ShotRecord | None] = queue.Queue()
         self._current: _RunFile | None = None
         self._lock = threading.Lock()
-        self.errors: list[str] = []
+        self.errors: list[str] = []  # the latest write failures, newest last
+        self.failed_writes = 0
         self._thread = threading.Thread(target=self._write_loop, name="llrs-runstore", daemon=True)
         self._thread.start()
 
@@ -143,6 +145,11 @@ class RunStore:
     def current_path(self) -> Path | None:
         with self._lock:
             return self._current.path if self._current is not None else None
+
+    def write_errors(self) -> tuple[int, str | None]:
+        """How many shots could not be written, and why the last one failed."""
+        with self._lock:
+            return self.failed_writes, (self.errors[-1] if self.errors else None)
 
     def note_config(self, config: SystemConfig) -> None:
         self._configs[config.digest()] = config
@@ -195,8 +202,14 @@ class RunStore:
                 if record is None:
                     return
                 try:
+                    config = self._configs.get(record.config_digest)
+                    if config is not None and config.sim.faults.disk_full:
+                        raise OSError(errno.ENOSPC, "No space left on device (injected: sim.faults.disk_full)")
                     self._file_for(record.config_digest).append(record)
                 except (OSError, KeyError, ValueError) as err:
-                    self.errors.append(f"shot {record.shot_id}: {type(err).__name__}: {err}")
+                    with self._lock:
+                        self.errors.append(f"shot {record.shot_id} not recorded: {type(err).__name__}: {err}")
+                        del self.errors[:-100]  # keep the latest; the count is in failed_writes
+                        self.failed_writes += 1
             finally:
                 self._queue.task_done()

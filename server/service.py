@@ -337,6 +337,7 @@ class LabService:
         if activity is None and armed:
             activity = "waiting for the trigger"
         run_file = self._store.current_path if self._store is not None else None
+        unrecorded, recording_error = self._store.write_errors() if self._store is not None else (0, None)
         return StatusOut(
             state=state,
             reason=fault,
@@ -358,6 +359,8 @@ class LabService:
             truth_successes=truth,
             last_shot=shot_summary(last) if last is not None else None,
             run_file=str(run_file) if run_file is not None else None,
+            unrecorded_shots=unrecorded,
+            recording_error=recording_error,
         )
 
     def last_record(self) -> ShotRecord | None:

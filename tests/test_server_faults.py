@@ -1,0 +1,123 @@
+"""Faults through the whole server on the real simulated lab: each is injected over the API, the shot ends in
+a defined state and says why, the server stays up and reports it, earlier shots stay recorded, and the next
+shot works once the fault is cleared."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import h5py
+import pytest
+from fastapi.testclient import TestClient
+
+from drivers.sim.lab import build_sim_lab
+from engine.config import load_config
+from engine.engine import Engine, EngineThread
+from server.app import create_app
+from server.runstore import RunStore
+from server.service import LabService
+
+NO_FAULTS = {"camera": "none", "awg_upload": "none", "upload_delay_s": 0.0, "solver": "none", "disk_full": False}
+
+
+@pytest.fixture(scope="module")
+def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, Path, LabService]]:
+    config = load_config("examples/chain-1x64.yaml")
+    data = config.model_dump()
+    data["sim"].update(lossless=True, seed=3)
+    data["awg"].update(waveforms_per_segment=4)  # plans stream through several segments
+    config = type(config).model_validate(data)
+
+    def build() -> Engine:
+        devices, lab = build_sim_lab(config)
+        return Engine(config, devices, lab=lab)
+
+    runs = tmp_path_factory.mktemp("runs")
+    service = LabService(engine_thread=EngineThread(build), store=RunStore(runs), pause_s=0.0)
+    service.start()
+    with TestClient(create_app(service=service)) as client:
+        yield client, runs, service
+    service.close()
+
+
+def set_faults(client: TestClient, **faults: object) -> None:
+    r = client.patch("/api/config", json={"sim": {"faults": {**NO_FAULTS, **faults}}})
+    assert r.status_code == 200, r.text
+
+
+def shots_on_disk(runs: Path) -> int:
+    total = 0
+    for path in runs.glob("*.h5"):
+        with h5py.File(path, "r", swmr=True) as f:
+            total += int(f["shot_id"].shape[0])
+    return total
+
+
+def good_shot(client: TestClient) -> dict:
+    for _ in range(5):
+        shot = client.post("/api/shots").json()
+        assert shot["outcome"] in ("success", "unsolvable"), shot
+        if shot["outcome"] == "success":
+            return shot
+    raise AssertionError("no solvable shot in 5 tries")
+
+
+@pytest.mark.parametrize(
+    ("faults", "reason"),
+    [
+        ({"camera": "timeout"}, "no frame within"),
+        ({"camera": "corrupt"}, "arrived corrupt"),
+        ({"awg_upload": "fail"}, "upload failure"),
+        ({"solver": "exception"}, "InjectedSolverFault"),
+    ],
+)
+def test_fault_is_reported_and_clears(api, faults: dict, reason: str) -> None:
+    client, runs, service = api
+    set_faults(client)
+    good_shot(client)
+    service._store.flush()  # noqa: SLF001
+    recorded = shots_on_disk(runs)
+    set_faults(client, **faults)
+    shot = client.post("/api/shots").json()
+    assert shot["outcome"] == "fault" and reason in shot["fault"]
+    status = client.get("/api/status").json()
+    assert status["state"] == "fault" and reason in status["reason"]
+    set_faults(client)
+    good_shot(client)
+    assert client.get("/api/status").json()["state"] != "fault"
+    service._store.flush()  # noqa: SLF001
+    assert shots_on_disk(runs) >= recorded + 2  # the faulted shot is on record too, and nothing earlier was lost
+
+
+def test_late_uploads_show_as_underruns_not_losses(api) -> None:
+    client, _, _ = api
+    set_faults(client, upload_delay_s=200e-6)
+    underruns = 0
+    for _ in range(4):
+        shot = client.post("/api/shots").json()
+        assert shot["outcome"] in ("success", "unsolvable"), shot
+        if shot["outcome"] == "success":
+            assert shot["target_filled"] is True
+        underruns += sum(c["underruns"] for c in client.get(f"/api/shots/{shot['shot_id']}").json()["cycles"])
+    assert underruns > 0
+    set_faults(client)
+
+
+def test_full_disk_keeps_shots_running_and_says_so(api) -> None:
+    client, runs, service = api
+    set_faults(client)
+    good_shot(client)
+    service._store.flush()  # noqa: SLF001
+    before = shots_on_disk(runs)
+    set_faults(client, disk_full=True)
+    shot = client.post("/api/shots").json()
+    assert shot["outcome"] in ("success", "unsolvable")  # the experiment goes on
+    service._store.flush()  # noqa: SLF001
+    status = client.get("/api/status").json()
+    assert status["unrecorded_shots"] >= 1 and "No space left" in status["recording_error"]
+    assert shots_on_disk(runs) == before  # nothing half-written, earlier shots intact
+    set_faults(client)
+    good_shot(client)
+    service._store.flush()  # noqa: SLF001
+    assert shots_on_disk(runs) >= before + 1

@@ -37,6 +37,7 @@ from server.models import (
     ErrorOut,
     PsfCalibrationOut,
     RunStateOut,
+    ShotFileRequest,
     ShotList,
     ShotOut,
     ShotRequest,
@@ -45,6 +46,7 @@ from server.models import (
     shot_out,
     shot_summary,
 )
+from server.labscript import ShotFileError
 from server.png import encode_png
 from server.service import CalibrationConflict, ConfigRejected, LabService, NotArmed
 
@@ -334,6 +336,23 @@ def create_app(
         except ConfigRejected as err:
             raise rejected(err) from None
         return shot_out(record)
+
+    @app.post(
+        "/api/shots/labscript",
+        response_model=ShotOut | None,
+        dependencies=auth,
+        responses={**body_errors, 409: {"model": ErrorOut, "description": "the shot file already holds results"}},
+        summary="Run the shot a labscript shot file describes and write its results into that file",
+    )
+    def post_shot_file(request: ShotFileRequest) -> ShotOut | None:
+        try:
+            record = service.shot_file(request.path)
+        except ShotFileError as err:
+            status = 409 if "already holds" in str(err) else 422
+            raise HTTPException(status, detail=str(err)) from None
+        except ConfigRejected as err:
+            raise rejected(err) from None
+        return shot_out(record) if record is not None else None
 
     @app.get("/api/shots", response_model=ShotList, responses=_NOT_FOUND, summary="Past shots, newest first")
     def list_shots(

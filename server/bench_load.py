@@ -90,7 +90,7 @@ async def _clients(base: str, seconds: float, rate_hz: float, n_ws: int) -> dict
             r = await client.get(url)
             ok = r.status_code == 200
             if ok and kind == "shots":
-                items = r.json().get("items", [])
+                items = r.json().get("shots", [])
                 if items:
                     last_id[:] = [items[0]["shot_id"]]
         except Exception:  # noqa: BLE001

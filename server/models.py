@@ -112,6 +112,15 @@ class ShotRequest(_Request):
     )
 
 
+class ShotFileRequest(_Request):
+    """``POST /api/shots/labscript`` body: a labscript shot file on this machine."""
+
+    path: str = Field(
+        min_length=1,
+        description="the shot file (HDF5); its llrs_ globals in /globals set the shot, results go to /results/llrs",
+    )
+
+
 class RunStateOut(BaseModel):
     running: bool = Field(description="true while shots run continuously")
     pause_s: float = Field(description="pause between continuous shots")

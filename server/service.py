@@ -257,6 +257,18 @@ class LabService:
             finally:
                 self._apply(base)
 
+    def shot_file(self, path: str) -> ShotRecord | None:
+        """Run the shot a labscript shot file describes (``server.labscript``) and write its results into it.
+
+        Returns None when the file's ``llrs_enabled`` global is false (the skip is written into the file).
+        """
+        from server.labscript import run_shot_file
+
+        def run(config: SystemConfig | None) -> ShotRecord:
+            return self.shot(override=config.model_dump(mode="json") if config is not None else None)
+
+        return run_shot_file(path, run, self.config)
+
     # -- calibration ------------------------------------------------------------------------------------------
 
     def acquire_images(self, n: int) -> np.ndarray:

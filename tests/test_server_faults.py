@@ -121,3 +121,27 @@ def test_full_disk_keeps_shots_running_and_says_so(api) -> None:
     good_shot(client)
     service._store.flush()  # noqa: SLF001
     assert shots_on_disk(runs) >= before + 1
+
+
+def test_labscript_shot_file_over_rest(api, tmp_path: Path) -> None:
+    """The sequencer hands the server a shot file; the shot's results land in that file, once."""
+    client, _, _ = api
+    set_faults(client)
+    shot_file = tmp_path / "0001_shot.h5"
+    with h5py.File(shot_file, "w") as f:
+        g = f.create_group("globals")
+        g.attrs["llrs_max_cycles"] = 3
+        g.attrs["llrs_loading_probability"] = 0.8
+    r = client.post("/api/shots/labscript", json={"path": str(shot_file)})
+    assert r.status_code == 200, r.text
+    shot = r.json()
+    with h5py.File(shot_file, "r") as f:
+        results = f["results/llrs"]
+        assert results.attrs["shot_id"] == shot["shot_id"]
+        outcome = results.attrs["outcome"]
+        assert (outcome.decode() if isinstance(outcome, bytes) else outcome) == shot["outcome"]
+    again = client.post("/api/shots/labscript", json={"path": str(shot_file)})
+    assert again.status_code == 409 and "already holds" in again.json()["detail"]
+    missing = client.post("/api/shots/labscript", json={"path": str(tmp_path / "nope.h5")})
+    assert missing.status_code == 422 and "no such shot file" in missing.json()["detail"]
+    assert client.get("/api/config").json()["loop"]["max_cycles"] == 5  # the shot's globals were for that shot only

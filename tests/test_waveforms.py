@@ -62,7 +62,7 @@ def test_axis_tones_comb_and_phases() -> None:
     cfg = chain_config(16)
     t = axis_tones(cfg, "x")
     assert np.allclose(t.frequency_hz, 70e6 + 1e6 * np.arange(16))
-    assert np.all(t.amplitude == 0.02)
+    assert np.all(t.amplitude == 0.015)
     k = np.arange(16)
     assert np.allclose(wrap(t.phase_rad + np.pi * k * (k - 1) / 16), 0, atol=1e-12)  # Schroeder
     zero = axis_tones(chain_config(16, array={"x_tones": {"phases": "zero"}}), "x")
@@ -160,10 +160,10 @@ def test_static_phase_is_exact_and_periodic() -> None:
     row = b.synthesize("x", STATIC, 5, exact=True)
     t = axis_tones(cfg, "x")
     tt = np.arange(n) / cfg.waveforms.sample_rate_hz
-    expect = 0.02 * FULL_SCALE * np.sin(t.phase_rad[5] + 2 * np.pi * t.frequency_hz[5] * tt)
+    expect = 0.015 * FULL_SCALE * np.sin(t.phase_rad[5] + 2 * np.pi * t.frequency_hz[5] * tt)
     assert np.abs(row - expect).max() < 1e-6
     # the next sample after the slot is the slot's first sample again
-    after = 0.02 * FULL_SCALE * np.sin(t.phase_rad[5] + 2 * np.pi * t.frequency_hz[5] * n / 624e6)
+    after = 0.015 * FULL_SCALE * np.sin(t.phase_rad[5] + 2 * np.pi * t.frequency_hz[5] * n / 624e6)
     assert after == pytest.approx(row[0])
 
 
@@ -184,7 +184,7 @@ def test_every_kind_joins_the_static_tones_at_both_ends(shape: str) -> None:
     n = b.slot_samples
     t = axis_tones(cfg, "x")
     w = 2 * np.pi / cfg.waveforms.sample_rate_hz
-    a = 0.02 * FULL_SCALE
+    a = 0.015 * FULL_SCALE
     for kind, (s0, a0, s1, a1) in KIND_ENDS.items():
         for k in (1, 7, 14):
             row = b.synthesize("x", kind, k, exact=True)
@@ -290,7 +290,7 @@ def test_example_table_sizes() -> None:
     chain = load_config(ROOT / "examples" / "chain-1x64.yaml")
     grid = load_config(ROOT / "examples" / "grid-32x64.yaml")
     assert table_formula_bytes(chain) == 2 * 6240 * 64 * 8 == 6_389_760
-    assert table_formula_bytes(grid) == 2 * 3120 * (32 + 64) * 5 == 2_995_200
+    assert table_formula_bytes(grid) == 2 * 3136 * (32 + 64) * 5 == 3_010_560
 
 
 @pytest.mark.parametrize("which", ["chain", "grid"])
@@ -398,11 +398,15 @@ def test_invalid_slots_are_rejected(which, kind, ys, xs, dys, dxs, match) -> Non
 # --- no clipping ---------------------------------------------------------------------------------------
 
 
-def test_amplitude_sum_above_full_scale_is_rejected() -> None:
+def test_amplitude_sum_above_full_scale_is_rejected(tmp_path: Path) -> None:
+    """A comb is refused by the config itself; CSV amplitudes (not known to the config) by the bank."""
+    with pytest.raises(ConfigError, match=r"array.x_tones.amplitude = 0.02 x 64 tones = 1.28"):
+        chain_config(64, array={"x_tones": {"amplitude": 0.02}})
+    with pytest.raises(ConfigError, match=r"array.y_tones.amplitude"):
+        grid_config(8, 60, array={"y_tones": {"amplitude": 0.02}})
+    csv = write_csv(tmp_path / "loud.csv", [(0.02, 70e6 + 1e6 * k, 0.0) for k in range(64)])
     with pytest.raises(ValueError, match=r"x_tones: the 64 tones can sum to 1.28 .*lower array.x_tones.amplitude"):
-        WaveformBank(chain_config(64))
-    with pytest.raises(ValueError, match=r"array.y_tones: .*lower array.y_tones.amplitude"):
-        WaveformBank(grid_config(8, 60, array={"y_tones": {"amplitude": 0.02}}))
+        WaveformBank(chain_config(64, array={"x_tones": {"csv": csv}}))
     WaveformBank(load_config(ROOT / "examples" / "grid-32x64.yaml"))  # 64 x 0.015 fits
 
 

@@ -189,6 +189,14 @@ class Streamer:
             self._stream_segments(ops, report, timer)
         return report
 
+    def rehearse(self, ops: Operations) -> None:
+        """Look up and render the first segment of ``ops`` into a scratch buffer and drop it (cache warm-up
+        while the camera exposes; see ``Engine._rehearse``). Touches no device."""
+        count = min(len(ops), self.slots_per_segment)
+        if count:
+            self.bank.lookup(ops, 0, count, self._keys)
+            self.bank.render(ops, 0, count, self._segment_bufs[1])
+
     def _lookup_and_render(self, ops: Operations, first: int, count: int, out: np.ndarray, timer: StageTimer | None) -> None:
         self.bank.lookup(ops, first, count, self._keys)
         if timer is not None:

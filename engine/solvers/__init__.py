@@ -61,11 +61,18 @@ def _red_rec(batching: str) -> Callable[[int, int, str], Planner]:
     return build
 
 
+def _assignment(nx: int, ny: int, trap_source: str) -> Planner:
+    from engine.solvers.assignment import AssignmentPlanner
+
+    return AssignmentPlanner(nx, ny, trap_source=trap_source)
+
+
 #: name -> factory(nx, ny, trap_source); the names ``solve`` and ``solver.algorithm`` accept.
 _FACTORIES: dict[str, Callable[[int, int, str], Planner]] = {
     "exact-1d": _exact_1d,
     "red-rec": _red_rec("red-rec"),
     "red-rec-wide": _red_rec("red-rec-wide"),
+    "assignment": _assignment,
 }
 
 ALGORITHMS: tuple[str, ...] = tuple(_FACTORIES)

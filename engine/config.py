@@ -163,6 +163,11 @@ class SolverConfig(_Model):
     """Module III: which planner turns occupancy + target into waveform slots."""
 
     algorithm: str = "exact-1d"
+    objective: Literal["slots", "transfers"] = Field(
+        default="slots",
+        description="what the planner minimises where it can choose: waveform slots (time) or pick-ups per "
+        "atom (every transfer risks losing the atom); see docs/benchmarks.md for the trade-off",
+    )
 
 
 class WaveformConfig(_Model):

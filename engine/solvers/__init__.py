@@ -19,7 +19,7 @@ import numpy as np
 
 from engine.operations import Plan
 
-__all__ = ["ALGORITHMS", "Planner", "PlannerError", "Solver", "UnsolvableError", "solve"]
+__all__ = ["ALGORITHMS", "OBJECTIVES", "Planner", "PlannerError", "Solver", "UnsolvableError", "solve"]
 
 
 class UnsolvableError(RuntimeError):
@@ -67,32 +67,57 @@ def _assignment(nx: int, ny: int, trap_source: str) -> Planner:
     return AssignmentPlanner(nx, ny, trap_source=trap_source)
 
 
+def _aod_parallel(nx: int, ny: int, trap_source: str, objective: str = "slots") -> Planner:
+    from engine.solvers.aod_parallel import AODParallelPlanner
+
+    if trap_source != "slm":
+        raise PlannerError(
+            "aod-parallel moves product sets of atoms between static SLM traps with crossed AODs; an AOD "
+            "chain (trap_source 'aod') uses exact-1d"
+        )
+    return AODParallelPlanner(nx, ny, objective=objective)
+
+
 #: name -> factory(nx, ny, trap_source); the names ``solve`` and ``solver.algorithm`` accept.
 _FACTORIES: dict[str, Callable[[int, int, str], Planner]] = {
     "exact-1d": _exact_1d,
     "red-rec": _red_rec("red-rec"),
     "red-rec-wide": _red_rec("red-rec-wide"),
     "assignment": _assignment,
+    "aod-parallel": _aod_parallel,
 }
 
 ALGORITHMS: tuple[str, ...] = tuple(_FACTORIES)
+
+#: Planning objectives (``solver.objective``): the fewest waveform slots, or the fewest pick-ups per atom
+#: (every transfer risks losing the atom). Planners not listed in ``OBJECTIVE_AWARE`` have one way to plan.
+OBJECTIVES: tuple[str, ...] = ("slots", "transfers")
+OBJECTIVE_AWARE: frozenset[str] = frozenset({"aod-parallel"})
 
 
 class Solver:
     """The engine's Module III: the configured planner behind one stable interface."""
 
-    def __init__(self, *, nx: int, ny: int, algorithm: str, trap_source: str = "slm") -> None:
+    def __init__(
+        self, *, nx: int, ny: int, algorithm: str, trap_source: str = "slm", objective: str = "slots"
+    ) -> None:
         factory = _FACTORIES.get(algorithm)
         if factory is None:
             raise PlannerError(f"solver.algorithm {algorithm!r} is not known; choose one of {', '.join(ALGORITHMS)}")
+        if objective not in OBJECTIVES:
+            raise PlannerError(f"solver.objective {objective!r} is not known; choose one of {', '.join(OBJECTIVES)}")
         try:
-            self.planner = factory(nx, ny, trap_source)
+            if algorithm in OBJECTIVE_AWARE:
+                self.planner = factory(nx, ny, trap_source, objective)  # type: ignore[call-arg]
+            else:
+                self.planner = factory(nx, ny, trap_source)
         except PlannerError:
             raise
         except ValueError as err:
             raise PlannerError(f"solver.algorithm {algorithm!r}: {err}") from None
         self.algorithm = algorithm
         self.trap_source = trap_source
+        self.objective = objective
 
     def check_target(self, target: np.ndarray) -> None:
         try:
@@ -107,11 +132,16 @@ class Solver:
         return self.planner.batch()
 
 
-_cache: dict[tuple[int, int, str, str], Solver] = {}
+_cache: dict[tuple[int, int, str, str, str], Solver] = {}
 
 
 def solve(
-    occupancy: np.ndarray, target: np.ndarray, *, algorithm: str = "exact-1d", trap_source: str | None = None
+    occupancy: np.ndarray,
+    target: np.ndarray,
+    *,
+    algorithm: str = "exact-1d",
+    trap_source: str | None = None,
+    objective: str = "slots",
 ) -> Plan:
     """Plan one cycle: ``occupancy`` and ``target`` are ``bool[ny, nx]`` (a 1D array is one row).
 
@@ -124,10 +154,10 @@ def solve(
     if target.shape != occupancy.shape:
         raise ValueError(f"target shape {target.shape} differs from occupancy shape {occupancy.shape}")
     source = trap_source or ("aod" if ny == 1 else "slm")
-    key = (nx, ny, algorithm, source)
+    key = (nx, ny, algorithm, source, objective)
     solver = _cache.get(key)
     if solver is None:
-        solver = _cache[key] = Solver(nx=nx, ny=ny, algorithm=algorithm, trap_source=source)
+        solver = _cache[key] = Solver(nx=nx, ny=ny, algorithm=algorithm, trap_source=source, objective=objective)
     solver.check_target(target)
     solver.solve_moves(occupancy, target)
     plan = solver.batch()

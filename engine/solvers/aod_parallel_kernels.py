@@ -1,0 +1,1099 @@
+"""Numba kernels of the AOD-parallel planner (see ``aod_parallel`` for the idea and the planner class).
+
+Everything works in an *internal frame*: ``g[c, r]`` is the occupancy of internal column ``c`` (the unit that
+the vertical phase compresses) at internal row ``r``. Without transposition internal rows/columns are the
+array's rows/columns; transposed they are its columns/rows (the target rectangle spans every row, so its
+columns become full-width rows). The target is the rectangle ``rows r0..r1-1 x columns c0..c1-1``.
+
+Plans are recorded as *batches*, each one EXTRACT, ``n_shift`` SHIFT slots and one IMPLANT, on a product
+set of row tones x column tones. Every tone has a direction (-1, 0, +1) and a number of slots it moves
+(moving first, then waiting), so a batch record is enough to write the slots and to replay them:
+
+``bmeta[b] = (row0, row1, col0, col1, n_shift, kind)``: the batch's row tones are
+``brow[row0:row1]`` (ascending, internal rows) with directions ``brs`` and move counts ``brm``, its column tones
+``bcol[col0:col1]`` with ``bcs`` and ``bcm``. ``kind``: 0 fill, 1 horizontal hop, 2 column compression.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
+
+from engine.operations import EXTRACT, IMPLANT, SHIFT
+
+__all__ = ["OK", "UNSOLVABLE", "OVERFLOW", "STUCK", "emit_batches", "plan_rect", "find_rect"]
+
+OK = 0
+UNSOLVABLE = 1
+OVERFLOW = 2  # a record buffer is too small (the planner grows it and plans again)
+STUCK = 3  # balancing found no legal hop (not seen on random fillings; reported, never silently wrong)
+
+K_FILL = 0
+K_HOP = 1
+K_COLUMN = 2
+
+# column state columns
+_N, _K, _T, _B, _WTOP, _WBOT = 0, 1, 2, 3, 8, 9
+
+
+@njit(cache=True, nogil=True)
+def find_rect(target: np.ndarray) -> tuple[int, int, int, int, int]:
+    """``(r0, r1, c0, c1, ok)``: the bounding box of ``target`` and whether it is exactly that rectangle
+    (ok = 1), has holes (0) or is empty (-1)."""
+    ny, nx = target.shape
+    r0 = ny
+    r1 = -1
+    c0 = nx
+    c1 = -1
+    n = 0
+    for y in range(ny):
+        for x in range(nx):
+            if target[y, x]:
+                n += 1
+                if y < r0:
+                    r0 = y
+                if y > r1:
+                    r1 = y
+                if x < c0:
+                    c0 = x
+                if x > c1:
+                    c1 = x
+    if n == 0:
+        return 0, 0, 0, 0, -1
+    ok = 1 if n == (r1 - r0 + 1) * (c1 - c0 + 1) else 0
+    return r0, r1 + 1, c0, c1 + 1, ok
+
+
+@intrinsic
+def _ctpop(typingctx, x):  # noqa: ANN001, ANN202 - numba intrinsic: one popcnt instruction
+    sig = types.uint64(types.uint64)
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+        return builder.ctpop(args[0])
+
+    return sig, codegen
+
+
+@intrinsic
+def _cttz(typingctx, x):  # noqa: ANN001, ANN202 - numba intrinsic: count trailing zeros (x != 0)
+    sig = types.uint64(types.uint64)
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+        return builder.cttz(args[0], ir.Constant(ir.IntType(1), 1))
+
+    return sig, codegen
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _popcount(x: np.uint64) -> int:
+    return int(_ctpop(x))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lowbit_index(x: np.uint64) -> int:
+    """Index of the lowest set bit of a non-zero word."""
+    return int(_cttz(x))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _flat(c: int, r: int, transposed: bool, nx_real: int) -> int:
+    if transposed:
+        return c * nx_real + r
+    return r * nx_real + c
+
+
+@njit(cache=True, nogil=True)
+def _sort_desc(idx: np.ndarray, n: int, score: np.ndarray) -> None:
+    for i in range(1, n):
+        v = idx[i]
+        s = score[v]
+        j = i - 1
+        while j >= 0 and score[idx[j]] < s:
+            idx[j + 1] = idx[j]
+            j -= 1
+        idx[j + 1] = v
+
+
+@njit(cache=True, nogil=True)
+def _column_batch(
+    g: np.ndarray, c: int, nr: int, r0: int, h_rows: int, k: int, pos: np.ndarray, transposed: bool, nx_real: int,
+    bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray, nrr: int,
+    bcol: np.ndarray, bcs: np.ndarray, bcm: np.ndarray, ncr: int, steps: np.ndarray, n_steps: int,
+) -> tuple[int, int, int, int]:
+    """Compress column ``c`` in one batch: window atom ``k + i`` goes straight to row ``r0 + i`` (an order-
+    preserving matching, so tones never meet and no path crosses a surplus atom, which stays). Each atom is
+    picked up once. Returns the new counts, nb = -1 on overflow; records nothing if nothing moves."""
+    n = 0
+    for r in range(nr):
+        if g[c, r]:
+            pos[n] = r
+            n += 1
+    n_move = 0
+    dmax = 0
+    n_dist = 0
+    for i in range(h_rows):
+        d = r0 + i - pos[k + i]
+        if d != 0:
+            n_move += 1
+            d = d if d > 0 else -d
+            n_dist += d
+            if d > dmax:
+                dmax = d
+    if n_move == 0:
+        return nb, nrr, ncr, n_steps
+    if nb >= bmeta.shape[0] or nrr + n_move > brow.shape[0] or ncr + 1 > bcol.shape[0]:
+        return -1, nrr, ncr, n_steps
+    if n_steps + n_dist > steps.shape[0]:
+        return -1, nrr, ncr, n_steps
+    bmeta[nb, 0] = nrr
+    for i in range(h_rows):
+        d = r0 + i - pos[k + i]
+        if d != 0:
+            brow[nrr] = pos[k + i]
+            brs[nrr] = 1 if d > 0 else -1
+            brm[nrr] = d if d > 0 else -d
+            nrr += 1
+    bmeta[nb, 1] = nrr
+    bmeta[nb, 2] = ncr
+    bcol[ncr] = c
+    bcs[ncr] = 0
+    bcm[ncr] = 0
+    ncr += 1
+    bmeta[nb, 3] = ncr
+    bmeta[nb, 4] = dmax
+    bmeta[nb, 5] = K_COLUMN
+    for i in range(h_rows - 1, -1, -1):  # down-movers bottom-first
+        d = r0 + i - pos[k + i]
+        for s in range(d):
+            steps[n_steps, 0] = _flat(c, pos[k + i] + s, transposed, nx_real)
+            steps[n_steps, 1] = _flat(c, pos[k + i] + s + 1, transposed, nx_real)
+            n_steps += 1
+    for i in range(h_rows):  # up-movers top-first
+        d = pos[k + i] - (r0 + i)
+        for s in range(d):
+            steps[n_steps, 0] = _flat(c, pos[k + i] - s, transposed, nx_real)
+            steps[n_steps, 1] = _flat(c, pos[k + i] - s - 1, transposed, nx_real)
+            n_steps += 1
+    for i in range(h_rows):
+        g[c, pos[k + i]] = False
+    for i in range(h_rows):
+        g[c, r0 + i] = True
+    return nb + 1, nrr, ncr, n_steps
+
+
+@njit(cache=True, nogil=True)
+def _relay_cost(g: np.ndarray, a: int, c: int, r: int) -> int:
+    """Slots of a row relay from column ``a`` to ``c`` along row ``r`` (2 + the longest gap the atoms on
+    the way have to close), or -1 if ``(r, a)`` holds no atom or ``(r, c)`` is not free."""
+    if not g[a, r] or g[c, r]:
+        return -1
+    s = 1 if c > a else -1
+    last = a
+    gap = 0
+    x = a + s
+    while x != c:
+        if g[x, r]:
+            d = x - last if s > 0 else last - x
+            if d > gap:
+                gap = d
+            last = x
+        x += s
+    d = c - last if s > 0 else last - c
+    if d > gap:
+        gap = d
+    return gap + 2
+
+
+@njit(cache=True, nogil=True)
+def _relay(
+    g: np.ndarray, a: int, c: int, r: int, cand: np.ndarray, transposed: bool, nx_real: int,
+    bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray, nrr: int,
+    bcol: np.ndarray, bcs: np.ndarray, bcm: np.ndarray, ncr: int, steps: np.ndarray, n_steps: int,
+) -> tuple[int, int, int, int]:
+    """One batch that moves an atom's worth from column ``a`` to column ``c`` along row ``r``: every atom on
+    the way (from ``a``) moves to the next one's trap, the last into ``(r, c)``. All tones start together and
+    each stops where its successor started, so tones never meet and every trap entered is free or was just
+    left; the columns in between keep their occupancy. Returns new counts, nb = -1 on overflow."""
+    s = 1 if c > a else -1
+    m = 0
+    x = a
+    while x != c:
+        if g[x, r]:
+            cand[m] = x
+            m += 1
+        x += s
+    dist = c - a if s > 0 else a - c
+    if nb >= bmeta.shape[0] or nrr + 1 > brow.shape[0] or ncr + m > bcol.shape[0]:
+        return -1, nrr, ncr, n_steps
+    if n_steps + dist > steps.shape[0]:
+        return -1, nrr, ncr, n_steps
+    bmeta[nb, 0] = nrr
+    brow[nrr] = r
+    brs[nrr] = 0
+    brm[nrr] = 0
+    nrr += 1
+    bmeta[nb, 1] = nrr
+    bmeta[nb, 2] = ncr
+    dmax = 0
+    for q in range(m):  # ascending column order
+        i = q if s > 0 else m - 1 - q
+        nxt = cand[i + 1] if i + 1 < m else c
+        d = nxt - cand[i] if s > 0 else cand[i] - nxt
+        bcol[ncr] = cand[i]
+        bcs[ncr] = s
+        bcm[ncr] = d
+        ncr += 1
+        if d > dmax:
+            dmax = d
+    bmeta[nb, 3] = ncr
+    bmeta[nb, 4] = dmax
+    bmeta[nb, 5] = K_HOP
+    for i in range(m - 1, -1, -1):  # the atom nearest the receiver first
+        nxt = cand[i + 1] if i + 1 < m else c
+        x = cand[i]
+        while x != nxt:
+            steps[n_steps, 0] = _flat(x, r, transposed, nx_real)
+            steps[n_steps, 1] = _flat(x + s, r, transposed, nx_real)
+            n_steps += 1
+            x += s
+    g[a, r] = False
+    g[c, r] = True
+    return nb + 1, nrr, ncr, n_steps
+
+
+@njit(cache=True, nogil=True)
+def _balance(
+    g: np.ndarray, nc: int, nr: int, r0: int, r1: int, c0: int, c1: int, cnt: np.ndarray, cand: np.ndarray,
+    key: np.ndarray, carried: np.ndarray, transposed: bool, nx_real: int,
+    bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray, nrr: int,
+    bcol: np.ndarray, bcs: np.ndarray, bcm: np.ndarray, ncr: int, steps: np.ndarray, n_steps: int,
+) -> tuple[int, int, int, int, int]:
+    """Give every target column at least ``r1 - r0`` atoms (status, nb, nrr, ncr, n_steps).
+
+    Repeatedly the target column with the largest deficit takes atoms from the nearest column with atoms
+    to spare (one that can reach it along some row). Two ways, whichever needs fewer slots:
+
+    - hops (a bucket brigade): each batch picks some atoms of one column (one x tone and their rows' y
+      tones, so nothing else is picked up) and carries them along their rows as far as every one of them
+      has free traps, preferring the atoms just carried in (the columns in between keep their own atoms),
+      reservoir atoms of the donor and target rows of the receiver;
+    - row relays (``_relay``): one batch per atom, any distance, columns in between untouched."""
+    h_rows = r1 - r0
+    for c in range(nc):
+        n = 0
+        for r in range(nr):
+            if g[c, r]:
+                n += 1
+        cnt[c] = n
+    guard = 0
+    while True:
+        recv = -1
+        worst = 0
+        for x in range(c0, c1):
+            d = h_rows - cnt[x]
+            if d > worst:
+                worst = d
+                recv = x
+        if recv < 0:
+            return OK, nb, nrr, ncr, n_steps
+        guard += 1
+        if guard > 4 * nc * nr:
+            return STUCK, nb, nrr, ncr, n_steps
+        # nearest donor that has a relay row to the receiver (ties: more to spare)
+        donor = -1
+        best_dist = 1 << 30
+        best_sur = 0
+        for x in range(nc):
+            sur = cnt[x] - h_rows if c0 <= x < c1 else cnt[x]
+            if sur <= 0 or x == recv:
+                continue
+            dist = x - recv if x > recv else recv - x
+            if dist > best_dist or (dist == best_dist and sur <= best_sur):
+                continue
+            ok = False
+            for r in range(nr):
+                if g[x, r] and not g[recv, r]:
+                    ok = True
+                    break
+            if ok:
+                donor = x
+                best_dist = dist
+                best_sur = sur
+        if donor < 0:  # no straight row: a vertical move in a donor first
+            nb, nrr, ncr, n_steps, ok = _relay_one(
+                g, cnt, nr, recv, h_rows, c0, c1, nc, cand, transposed, nx_real,
+                bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+            )  # fmt: skip
+            if nb < 0:
+                return OVERFLOW, nb, nrr, ncr, n_steps
+            if not ok:
+                return STUCK, nb, nrr, ncr, n_steps
+            continue
+        m = min(worst, best_sur)
+        s = 1 if recv > donor else -1
+        # relay plan: the m cheapest rows (target rows of the receiver first on ties)
+        n_rel = 0
+        for r in range(nr):
+            cost = _relay_cost(g, donor, recv, r)
+            if cost > 0:
+                key[r] = cost * 2 + (0 if r0 <= r < r1 else 1)
+                cand[n_rel] = r
+                n_rel += 1
+        for i in range(1, n_rel):  # ascending cost
+            v = cand[i]
+            q = i - 1
+            while q >= 0 and key[cand[q]] > key[v]:
+                cand[q + 1] = cand[q]
+                q -= 1
+            cand[q + 1] = v
+        n_rel = min(n_rel, m)
+        relay_slots = 0
+        for i in range(n_rel):
+            relay_slots += key[cand[i]] >> 1
+        hop_slots = 3 * best_dist  # at best one 3-slot hop per column
+        if n_rel == m and relay_slots <= hop_slots:
+            for i in range(n_rel):
+                carried[i] = cand[i]
+            for i in range(n_rel):
+                nb, nrr, ncr, n_steps = _relay(
+                    g, donor, recv, carried[i], cand, transposed, nx_real,
+                    bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+                )  # fmt: skip
+                if nb < 0:
+                    return OVERFLOW, nb, nrr, ncr, n_steps
+            cnt[donor] -= n_rel
+            cnt[recv] += n_rel
+            continue
+        j = donor
+        for r in range(nr):
+            carried[r] = 0
+        while j != recv and m > 0:
+            remaining = recv - j if recv > j else j - recv
+            n_cand = 0
+            for r in range(nr):
+                if g[j, r] and not g[j + s, r]:
+                    ln = 1
+                    while ln < remaining and not g[j + (ln + 1) * s, r]:
+                        ln += 1
+                    bonus = 0
+                    if carried[r]:
+                        bonus += 4
+                    if ln == remaining and r0 <= r < r1:
+                        bonus += 2
+                    if j == donor and not (r0 <= r < r1):
+                        bonus += 1
+                    key[r] = ln * 8 + bonus
+                    cand[n_cand] = r
+                    n_cand += 1
+            if n_cand == 0:
+                # this hop is blocked: bring the rest by relays on the next round (the receiver still lacks)
+                break
+            _sort_desc(cand, n_cand, key)
+            take = min(m, n_cand)
+            d = remaining
+            for i in range(take):
+                ln = key[cand[i]] >> 3
+                if ln < d:
+                    d = ln
+            for i in range(1, take):  # ascending rows for the tone list
+                v = cand[i]
+                q = i - 1
+                while q >= 0 and cand[q] > v:
+                    cand[q + 1] = cand[q]
+                    q -= 1
+                cand[q + 1] = v
+            if nb >= bmeta.shape[0] or nrr + take > brow.shape[0] or ncr + 1 > bcol.shape[0]:
+                return OVERFLOW, nb, nrr, ncr, n_steps
+            if n_steps + take * d > steps.shape[0]:
+                return OVERFLOW, nb, nrr, ncr, n_steps
+            bmeta[nb, 0] = nrr
+            for i in range(take):
+                brow[nrr] = cand[i]
+                brs[nrr] = 0
+                brm[nrr] = 0
+                nrr += 1
+            bmeta[nb, 1] = nrr
+            bmeta[nb, 2] = ncr
+            bcol[ncr] = j
+            bcs[ncr] = s
+            bcm[ncr] = d
+            ncr += 1
+            bmeta[nb, 3] = ncr
+            bmeta[nb, 4] = d
+            bmeta[nb, 5] = K_HOP
+            nb += 1
+            for t in range(d):
+                for i in range(take):
+                    r = cand[i]
+                    steps[n_steps, 0] = _flat(j + t * s, r, transposed, nx_real)
+                    steps[n_steps, 1] = _flat(j + (t + 1) * s, r, transposed, nx_real)
+                    n_steps += 1
+            for r in range(nr):
+                carried[r] = 0
+            for i in range(take):
+                r = cand[i]
+                g[j, r] = False
+                g[j + d * s, r] = True
+                carried[r] = 1
+            cnt[j] -= take
+            cnt[j + d * s] += take
+            j += d * s
+            m = take
+        if j != recv:
+            # a blocked chain: the next round prefers a relay (hops into this receiver failed)
+            nb, nrr, ncr, n_steps, ok = _relay_one(
+                g, cnt, nr, recv, h_rows, c0, c1, nc, cand, transposed, nx_real,
+                bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+            )  # fmt: skip
+            if nb < 0:
+                return OVERFLOW, nb, nrr, ncr, n_steps
+            if not ok:
+                return STUCK, nb, nrr, ncr, n_steps
+
+
+@njit(cache=True, nogil=True)
+def _relay_one(
+    g: np.ndarray, cnt: np.ndarray, nr: int, recv: int, h_rows: int, c0: int, c1: int, nc: int,
+    cand: np.ndarray, transposed: bool, nx_real: int,
+    bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray, nrr: int,
+    bcol: np.ndarray, bcs: np.ndarray, bcm: np.ndarray, ncr: int, steps: np.ndarray, n_steps: int,
+) -> tuple[int, int, int, int, bool]:
+    """The cheapest single relay into ``recv`` from any column with atoms to spare (ok = False if none)."""
+    best = -1
+    best_a = -1
+    best_r = -1
+    for a in range(nc):
+        sur = cnt[a] - h_rows if c0 <= a < c1 else cnt[a]
+        if sur <= 0 or a == recv:
+            continue
+        for r in range(nr):
+            cost = _relay_cost(g, a, recv, r)
+            if cost > 0 and (best < 0 or cost < best):
+                best = cost
+                best_a = a
+                best_r = r
+    if best < 0:
+        # every free trap of the receiver is free in the donor too: first move one donor atom straight
+        # along its column (no atom in between: it is the nearest one) into such a row, then relay
+        for a in range(nc):
+            sur = cnt[a] - h_rows if c0 <= a < c1 else cnt[a]
+            if sur <= 0 or a == recv:
+                continue
+            da = a - recv if a > recv else recv - a
+            db = best_a - recv if best_a > recv else recv - best_a
+            if best_a < 0 or da < db:
+                best_a = a
+        if best_a < 0:
+            return nb, nrr, ncr, n_steps, False
+        a = best_a
+        best = -1
+        y_best = -1
+        for r in range(nr):
+            if g[recv, r] or g[a, r]:
+                continue
+            for y in range(nr):
+                if g[a, y]:
+                    d = y - r if y > r else r - y
+                    clear = True
+                    lo = min(y, r) + 1
+                    hi = max(y, r)
+                    for q in range(lo, hi):
+                        if g[a, q]:
+                            clear = False
+                            break
+                    if clear and (best < 0 or d < best):
+                        best = d
+                        best_r = r
+                        y_best = y
+        if best < 0:
+            return nb, nrr, ncr, n_steps, False
+        if nb >= bmeta.shape[0] or nrr + 1 > brow.shape[0] or ncr + 1 > bcol.shape[0]:
+            return -1, nrr, ncr, n_steps, True
+        if n_steps + best > steps.shape[0]:
+            return -1, nrr, ncr, n_steps, True
+        sy = 1 if best_r > y_best else -1
+        bmeta[nb, 0] = nrr
+        brow[nrr] = y_best
+        brs[nrr] = sy
+        brm[nrr] = best
+        nrr += 1
+        bmeta[nb, 1] = nrr
+        bmeta[nb, 2] = ncr
+        bcol[ncr] = a
+        bcs[ncr] = 0
+        bcm[ncr] = 0
+        ncr += 1
+        bmeta[nb, 3] = ncr
+        bmeta[nb, 4] = best
+        bmeta[nb, 5] = K_HOP
+        nb += 1
+        y = y_best
+        while y != best_r:
+            steps[n_steps, 0] = _flat(a, y, transposed, nx_real)
+            steps[n_steps, 1] = _flat(a, y + sy, transposed, nx_real)
+            n_steps += 1
+            y += sy
+        g[a, y_best] = False
+        g[a, best_r] = True
+    nb, nrr, ncr, n_steps = _relay(
+        g, best_a, recv, best_r, cand, transposed, nx_real,
+        bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+    )  # fmt: skip
+    if nb >= 0:
+        cnt[best_a] -= 1
+        cnt[recv] += 1
+    return nb, nrr, ncr, n_steps, True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _range_word(a: int, b: int, w: int) -> np.uint64:
+    """Bits ``a..b-1`` that fall in word ``w`` (bit ``64 w + i`` is bit ``i`` of word ``w``)."""
+    lo = a - 64 * w
+    hi = b - 64 * w
+    if lo < 0:
+        lo = 0
+    if hi > 64:
+        hi = 64
+    if hi <= lo:
+        return np.uint64(0)
+    if hi - lo == 64:
+        return ~np.uint64(0)
+    return ((np.uint64(1) << np.uint64(hi - lo)) - np.uint64(1)) << np.uint64(lo)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _flip_bits(d: np.uint64, w: int, arr: np.ndarray, c: int) -> None:
+    """For every set bit ``i`` of ``d`` (row ``64 w + i``) toggle column ``c`` in ``arr[row]``."""
+    cw = c >> 6
+    cb = np.uint64(1) << np.uint64(c & 63)
+    while d:
+        arr[(w << 6) + _lowbit_index(d), cw] ^= cb
+        d &= d - np.uint64(1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _add_bits(d: np.uint64, w: int, score: np.ndarray, v: int) -> None:
+    while d:
+        score[(w << 6) + _lowbit_index(d)] += v
+        d &= d - np.uint64(1)
+
+
+@njit(cache=True, nogil=True)
+def _col_update(
+    c: int, nr: int, nwr: int, r0: int, r1: int, dyn: bool, ob: np.ndarray, prow: np.ndarray, st: np.ndarray,
+    cm: np.ndarray, vt: np.ndarray, ut: np.ndarray, vb: np.ndarray, ub: np.ndarray, sct: np.ndarray, scb: np.ndarray,
+    ptop: np.ndarray, pbot: np.ndarray,
+) -> None:
+    """Recompute column ``c``'s window and needs from its occupancy bits ``ob[c]`` and bring its entries in
+    the per-barrier column sets and scores up to date (only the bits that changed are touched).
+
+    Window: the ``H = r1 - r0`` consecutive atoms that fill the target rows in order, chosen to minimise
+    (max(T, B), T + B) where T = how many rows the top window atom still has to come down (the number of
+    top Fills the column needs) and B the same for the bottom. A top Fill at barrier h (rows < h move
+    down) is legal iff the column has a hole at h - 1 or h, harmless iff h <= LT (the first window atom
+    that must not move down), useful iff also T > 0 and the top window atom is above h. Bottom likewise.
+    ``cm[c] = (vt0, vt1, ut0, ut1, vb0, vb1, ub0, ub1)``: the column's current bits over barriers;
+    ``prow[c, :n]`` its atoms' rows, ascending; ``nwr`` words per bit set (1 if nr <= 64)."""
+    h_rows = r1 - r0
+    pos = prow[c]
+    n = st[c, _N]
+    old_t = st[c, _WTOP]
+    old_b = st[c, _WBOT]
+    k = st[c, _K]
+    if dyn or k < 0 or k > n - h_rows:
+        best = 0
+        best_key = -1
+        for kk in range(n - h_rows + 1):
+            t = r0 - pos[kk]
+            b = pos[kk + h_rows - 1] - (r1 - 1)
+            if t < 0:
+                t = 0
+            if b < 0:
+                b = 0
+            key = (max(t, b) << 20) + t + b
+            if best_key < 0 or key < best_key:
+                best = kk
+                best_key = key
+        k = best
+    st[c, _K] = k
+    t = r0 - pos[k]
+    b = pos[k + h_rows - 1] - (r1 - 1)
+    t = t if t > 0 else 0
+    b = b if b > 0 else 0
+    st[c, _T] = t
+    st[c, _B] = b
+    # weights: a run that helps a column counts the column's need on that side (the columns with the most
+    # left to do are the critical path)
+    wtop = t
+    wbot = b
+    st[c, _WTOP] = wtop
+    st[c, _WBOT] = wbot
+    cw = c >> 6
+    cb = np.uint64(1) << np.uint64(c & 63)
+    dt = wtop ^ old_t
+    db = wbot ^ old_b
+    q = 0
+    while dt or db:
+        if dt & 1:
+            ptop[q, cw] ^= cb
+        if db & 1:
+            pbot[q, cw] ^= cb
+        dt >>= 1
+        db >>= 1
+        q += 1
+    wt = pos[k]
+    wb = pos[k + h_rows - 1]
+    # D_i = r0 + i - pos[k + i] does not increase with i: binary searches for the first D <= 0 (LT) and
+    # the last D >= 0 (LB)
+    lo = 0
+    hi = h_rows
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if r0 + mid - pos[k + mid] <= 0:
+            hi = mid
+        else:
+            lo = mid + 1
+    lt = pos[k + lo] if lo < h_rows else nr
+    lo = 0
+    hi = h_rows
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if r0 + mid - pos[k + mid] >= 0:
+            lo = mid + 1
+        else:
+            hi = mid
+    lb = pos[k + lo - 1] if lo > 0 else -1
+    top_hi = min(nr - 1, lt) + 1
+    bot_lo = max(lb, 0)
+    for w in range(nwr):
+        o = ob[c, w]
+        below = ob[c, 0] >> np.uint64(63) if w == 1 else np.uint64(0)  # bit 63 of the previous word
+        above = ob[c, 1] << np.uint64(63) if w == 0 else np.uint64(0)  # bit 0 of the next word
+        both_t = ((o << np.uint64(1)) | below) & o  # h with atoms at h - 1 and h
+        both_b = ((o >> np.uint64(1)) | above) & o  # h with atoms at h and h + 1
+        n_vt = ~both_t & _range_word(1, top_hi, w)
+        n_ut = n_vt & _range_word(wt + 1, nr, w) if t > 0 else np.uint64(0)
+        n_vb = ~both_b & _range_word(bot_lo, nr - 1, w)
+        n_ub = n_vb & _range_word(0, wb, w) if b > 0 else np.uint64(0)
+        _flip_bits(n_vt ^ cm[c, w], w, vt, c)
+        _flip_bits(n_vb ^ cm[c, 4 + w], w, vb, c)
+        o_ut = cm[c, 2 + w]
+        o_ub = cm[c, 6 + w]
+        _flip_bits(n_ut ^ o_ut, w, ut, c)
+        _flip_bits(n_ub ^ o_ub, w, ub, c)
+        if wtop != old_t:
+            _add_bits(o_ut, w, sct, -old_t)
+            _add_bits(n_ut, w, sct, wtop)
+        else:
+            _add_bits(o_ut & ~n_ut, w, sct, -wtop)
+            _add_bits(n_ut & ~o_ut, w, sct, wtop)
+        if wbot != old_b:
+            _add_bits(o_ub, w, scb, -old_b)
+            _add_bits(n_ub, w, scb, wbot)
+        else:
+            _add_bits(o_ub & ~n_ub, w, scb, -wbot)
+            _add_bits(n_ub & ~o_ub, w, scb, wbot)
+        cm[c, w] = n_vt
+        cm[c, 2 + w] = n_ut
+        cm[c, 4 + w] = n_vb
+        cm[c, 6 + w] = n_ub
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pair_score(
+    h: int, hp: int, nwc: int, n_planes: int, vt: np.ndarray, ut: np.ndarray, vb: np.ndarray, ub: np.ndarray,
+    ptop: np.ndarray, pbot: np.ndarray,
+) -> int:
+    """Weighted gain of the Fill pair (top barrier h, bottom barrier hp): every column legal and harmless
+    for both runs and useful for one takes part; each useful run counts the column's weight on that side
+    (summed with popcounts over the weights' bit planes ``ptop``/``pbot``)."""
+    s = 0
+    for w in range(nwc):
+        a = ut[h, w]
+        b = ub[hp, w]
+        cs = vt[h, w] & vb[hp, w] & (a | b)
+        xa = cs & a
+        xb = cs & b
+        for q in range(n_planes):
+            s += (_popcount(xa & ptop[q, w]) + _popcount(xb & pbot[q, w])) << q
+    return s
+
+
+@njit(cache=True, nogil=True)
+def _top_k(score: np.ndarray, lo: int, hi: int, idx: np.ndarray, val: np.ndarray, k: int) -> int:
+    """Indices of the ``k`` largest positive ``score[lo:hi]``, best first (ties: the lower index)."""
+    n = 0
+    floor = 0
+    for h in range(lo, hi):
+        s = score[h]
+        if s <= floor:
+            continue
+        j = n if n < k else k - 1
+        while j > 0 and val[j - 1] < s:
+            idx[j] = idx[j - 1]
+            val[j] = val[j - 1]
+            j -= 1
+        idx[j] = h
+        val[j] = s
+        if n < k:
+            n += 1
+        if n == k:
+            floor = val[k - 1]
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _fill_batch(
+    ob: np.ndarray, prow: np.ndarray, st: np.ndarray, nr: int, h: int, hp: int, cols: np.ndarray, n_cols: int,
+    transposed: bool, nx_real: int, bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray, nrr: int,
+    bcol: np.ndarray, bcs: np.ndarray, bcm: np.ndarray, ncr: int, steps: np.ndarray, n_steps: int, nwr: int,
+) -> tuple[int, int, int, int]:
+    """Record one Fill batch (rows above barrier ``h`` down one row, rows below ``hp`` up one row, in columns
+    ``cols[:n_cols]``) and apply it. ``h = 0``: no top run; ``hp = nr - 1``: no bottom run.
+    Returns the new counts (nb, nrr, ncr, n_steps), nb = -1 on overflow."""
+    if nb >= bmeta.shape[0] or nrr + nr > brow.shape[0] or ncr + n_cols > bcol.shape[0]:
+        return -1, nrr, ncr, n_steps
+    bmeta[nb, 0] = nrr
+    for w in range(nwr):
+        rows = np.uint64(0)
+        for i in range(n_cols):
+            rows |= ob[cols[i], w]
+        x = rows & (_range_word(0, h, w) | _range_word(hp + 1, nr, w))
+        while x:
+            r = (w << 6) + _lowbit_index(x)
+            brow[nrr] = r
+            brs[nrr] = 1 if r < h else -1
+            brm[nrr] = 1
+            nrr += 1
+            x &= x - np.uint64(1)
+    bmeta[nb, 1] = nrr
+    bmeta[nb, 2] = ncr
+    for i in range(n_cols):
+        bcol[ncr] = cols[i]
+        bcs[ncr] = 0
+        bcm[ncr] = 0
+        ncr += 1
+    bmeta[nb, 3] = ncr
+    bmeta[nb, 4] = 1
+    bmeta[nb, 5] = K_FILL
+    for i in range(n_cols):
+        c = cols[i]
+        pos = prow[c]
+        n = st[c, _N]
+        n_top = 0
+        while n_top < n and pos[n_top] < h:
+            n_top += 1
+        first_bot = n
+        while first_bot > 0 and pos[first_bot - 1] > hp:
+            first_bot -= 1
+        if n_steps + n_top + (n - first_bot) > steps.shape[0]:
+            return -1, nrr, ncr, n_steps
+        # top run bottom-first (each atom steps into a trap just left), bottom run top-first
+        for q in range(n_top - 1, -1, -1):
+            r = pos[q]
+            steps[n_steps, 0] = _flat(c, r, transposed, nx_real)
+            steps[n_steps, 1] = _flat(c, r + 1, transposed, nx_real)
+            n_steps += 1
+            pos[q] = r + 1
+        for q in range(first_bot, n):
+            r = pos[q]
+            steps[n_steps, 0] = _flat(c, r, transposed, nx_real)
+            steps[n_steps, 1] = _flat(c, r - 1, transposed, nx_real)
+            n_steps += 1
+            pos[q] = r - 1
+        # shift the bits: rows < h down one, rows > hp up one
+        o0 = ob[c, 0]
+        o1 = ob[c, 1]
+        t0 = o0 & _range_word(0, h, 0)
+        t1 = o1 & _range_word(0, h, 1)
+        b0 = o0 & _range_word(hp + 1, nr, 0)
+        b1 = o1 & _range_word(hp + 1, nr, 1)
+        k0 = o0 & ~(t0 | b0)
+        k1 = o1 & ~(t1 | b1)
+        ob[c, 0] = k0 | (t0 << np.uint64(1)) | (b0 >> np.uint64(1)) | (b1 << np.uint64(63))
+        ob[c, 1] = k1 | (t1 << np.uint64(1)) | (t0 >> np.uint64(63)) | (b1 >> np.uint64(1))
+    return nb + 1, nrr, ncr, n_steps
+
+
+@njit(cache=True, nogil=True)
+def _load_column(g: np.ndarray, c: int, nr: int, ob: np.ndarray, prow: np.ndarray, st: np.ndarray) -> None:
+    """Occupancy bits, sorted atom rows and atom count of column ``c`` from ``g``."""
+    ob[c, 0] = 0
+    ob[c, 1] = 0
+    n = 0
+    for r in range(nr):
+        if g[c, r]:
+            ob[c, r >> 6] |= np.uint64(1) << np.uint64(r & 63)
+            prow[c, n] = r
+            n += 1
+    st[c, _N] = n
+
+
+@njit(cache=True, nogil=True)
+def _fill_phase(
+    g: np.ndarray, nr: int, r0: int, r1: int, c0: int, c1: int, dyn: bool, dedicated: bool, k_best: int,
+    ob: np.ndarray, prow: np.ndarray, st: np.ndarray, pos: np.ndarray, cm: np.ndarray,
+    vt: np.ndarray, ut: np.ndarray, vb: np.ndarray, ub: np.ndarray, sct: np.ndarray, scb: np.ndarray,
+    it: np.ndarray, ib: np.ndarray, tv: np.ndarray, bv: np.ndarray, ptop: np.ndarray, pbot: np.ndarray,
+    cols: np.ndarray, transposed: bool, nx_real: int,
+    bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray, nrr: int,
+    bcol: np.ndarray, bcs: np.ndarray, bcm: np.ndarray, ncr: int, steps: np.ndarray, n_steps: int,
+) -> tuple[int, int, int, int, int]:
+    """Vertical phase on the balanced target columns ``c0..c1-1``: greedy Fill batches, each the barrier pair
+    (or single barrier) with the largest need-weighted gain among the ``k_best`` best single barriers per
+    side; with ``dedicated``, one compression batch per column instead. Returns (status, nb, nrr, ncr, n_steps)."""
+    h_rows = r1 - r0
+    nwr = 1 if nr <= 64 else 2
+    nwc = 1 if c1 <= 64 else 2
+    n_planes = 1
+    while (1 << n_planes) <= nr:
+        n_planes += 1
+    for q in range(ptop.shape[0]):
+        for w in range(2):
+            ptop[q, w] = 0
+            pbot[q, w] = 0
+    for h in range(nr):
+        sct[h] = 0
+        scb[h] = 0
+        for w in range(2):
+            vt[h, w] = 0
+            ut[h, w] = 0
+            vb[h, w] = 0
+            ub[h, w] = 0
+    for c in range(c0, c1):
+        if dedicated:
+            nb, nrr, ncr, n_steps = _column_batch(
+                g, c, nr, r0, h_rows, _best_window(g, c, nr, r0, r1, pos), pos, transposed, nx_real,
+                bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+            )  # fmt: skip
+            if nb < 0:
+                return OVERFLOW, nb, nrr, ncr, n_steps
+            continue
+        _load_column(g, c, nr, ob, prow, st)
+        for q in range(8):
+            cm[c, q] = 0
+        st[c, _K] = -1
+        st[c, _T] = 0
+        st[c, _B] = 0
+        st[c, _WTOP] = 0
+        st[c, _WBOT] = 0
+        _col_update(c, nr, nwr, r0, r1, True, ob, prow, st, cm, vt, ut, vb, ub, sct, scb, ptop, pbot)
+    if dedicated:
+        return OK, nb, nrr, ncr, n_steps
+    while True:
+        n_t = _top_k(sct, 1, nr, it, tv, k_best)
+        n_b = _top_k(scb, 0, nr - 1, ib, bv, k_best)
+        if n_t == 0 and n_b == 0:
+            worst = -1
+            for c in range(c0, c1):
+                if st[c, _T] > 0 or st[c, _B] > 0:
+                    if worst < 0 or max(st[c, _T], st[c, _B]) > max(st[worst, _T], st[worst, _B]):
+                        worst = c
+            if worst < 0:
+                return OK, nb, nrr, ncr, n_steps
+            # no Fill helps anyone (not seen in practice): compress the neediest column on its own
+            for r in range(nr):
+                g[worst, r] = (ob[worst, r >> 6] >> np.uint64(r & 63)) & np.uint64(1)
+            nb, nrr, ncr, n_steps = _column_batch(
+                g, worst, nr, r0, h_rows, st[worst, _K], pos, transposed, nx_real,
+                bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+            )  # fmt: skip
+            if nb < 0:
+                return OVERFLOW, nb, nrr, ncr, n_steps
+            _load_column(g, worst, nr, ob, prow, st)
+            _col_update(worst, nr, nwr, r0, r1, dyn, ob, prow, st, cm, vt, ut, vb, ub, sct, scb, ptop, pbot)
+            continue
+        best = 0
+        best_h = 0
+        best_hp = nr - 1
+        if n_t > 0:
+            best = sct[it[0]]
+            best_h = it[0]
+        if n_b > 0 and scb[ib[0]] > best:
+            best = scb[ib[0]]
+            best_h = 0
+            best_hp = ib[0]
+        top_b = scb[ib[0]] if n_b > 0 else 0
+        for i in range(n_t):
+            h = it[i]
+            if sct[h] + top_b <= best:
+                break
+            for j in range(n_b):
+                hp = ib[j]
+                if sct[h] + scb[hp] <= best:
+                    break
+                if hp <= h:
+                    continue
+                s = _pair_score(h, hp, nwc, n_planes, vt, ut, vb, ub, ptop, pbot)
+                if s > best:
+                    best = s
+                    best_h = h
+                    best_hp = hp
+        n_cols = 0
+        for w in range(nwc):
+            if best_h > 0 and best_hp < nr - 1:
+                x = vt[best_h, w] & vb[best_hp, w] & (ut[best_h, w] | ub[best_hp, w])
+            elif best_h > 0:
+                x = ut[best_h, w]
+            else:
+                x = ub[best_hp, w]
+            while x:
+                cols[n_cols] = (w << 6) + _lowbit_index(x)
+                n_cols += 1
+                x &= x - np.uint64(1)
+        nb, nrr, ncr, n_steps = _fill_batch(
+            ob, prow, st, nr, best_h, best_hp, cols, n_cols, transposed, nx_real,
+            bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps, nwr,
+        )  # fmt: skip
+        if nb < 0:
+            return OVERFLOW, nb, nrr, ncr, n_steps
+        for i in range(n_cols):
+            _col_update(cols[i], nr, nwr, r0, r1, dyn, ob, prow, st, cm, vt, ut, vb, ub, sct, scb, ptop, pbot)
+
+
+@njit(cache=True, nogil=True)
+def _best_window(g: np.ndarray, c: int, nr: int, r0: int, r1: int, pos: np.ndarray) -> int:
+    """First atom (sorted index) of column ``c``'s best window of ``r1 - r0`` consecutive atoms for a one-batch
+    compression: the fewest shift slots (the largest displacement, max(T, B)), then the fewest steps."""
+    h_rows = r1 - r0
+    n = 0
+    for r in range(nr):
+        if g[c, r]:
+            pos[n] = r
+            n += 1
+    best = 0
+    best_key = -1
+    for k in range(n - h_rows + 1):
+        cost = 0
+        for i in range(h_rows):
+            d = pos[k + i] - r0 - i
+            cost += d if d >= 0 else -d
+        t = max(r0 - pos[k], 0)
+        b = max(pos[k + h_rows - 1] - (r1 - 1), 0)
+        key = (max(t, b) << 20) + cost
+        if best_key < 0 or key < best_key:
+            best = k
+            best_key = key
+    return best
+
+
+@njit(cache=True, nogil=True)
+def plan_rect(
+    occ: np.ndarray, transposed: bool, r0: int, r1: int, c0: int, c1: int, dyn: bool, dedicated: bool,
+    k_best: int, g: np.ndarray, cnt: np.ndarray, cand: np.ndarray, key: np.ndarray, carried: np.ndarray,
+    ob: np.ndarray, prow: np.ndarray, st: np.ndarray, pos: np.ndarray, cm: np.ndarray,
+    vt: np.ndarray, ut: np.ndarray, vb: np.ndarray, ub: np.ndarray,
+    sct: np.ndarray, scb: np.ndarray, it: np.ndarray, ib: np.ndarray, tv: np.ndarray, bv: np.ndarray,
+    ptop: np.ndarray, pbot: np.ndarray, cols: np.ndarray,
+    bmeta: np.ndarray, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray,
+    bcol: np.ndarray, bcs: np.ndarray, bcm: np.ndarray, steps: np.ndarray,
+) -> tuple[int, int, int, int]:
+    """Plan one instance in the internal frame: (status, batches, one-site steps, waveform slots).
+
+    ``occ`` is the array's ``bool[ny, nx]``; the target rectangle is given in internal coordinates."""
+    ny, nx = occ.shape
+    if transposed:
+        nc, nr = ny, nx
+        for c in range(nc):
+            for r in range(nr):
+                g[c, r] = occ[c, r]
+    else:
+        nc, nr = nx, ny
+        for c in range(nc):
+            for r in range(nr):
+                g[c, r] = occ[r, c]
+    total = 0
+    for c in range(nc):
+        for r in range(nr):
+            if g[c, r]:
+                total += 1
+    if total < (r1 - r0) * (c1 - c0):
+        return UNSOLVABLE, 0, 0, 0
+    status, nb, nrr, ncr, n_steps = _balance(
+        g, nc, nr, r0, r1, c0, c1, cnt, cand, key, carried, transposed, nx,
+        bmeta, 0, brow, brs, brm, 0, bcol, bcs, bcm, 0, steps, 0,
+    )  # fmt: skip
+    if status != OK:
+        return status, 0, 0, 0
+    status, nb, nrr, ncr, n_steps = _fill_phase(
+        g, nr, r0, r1, c0, c1, dyn, dedicated, k_best, ob, prow, st, pos, cm, vt, ut, vb, ub, sct, scb, it, ib,
+        tv, bv, ptop, pbot, cols, transposed, nx, bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+    )  # fmt: skip
+    if status != OK:
+        return status, 0, 0, 0
+    n_slots = 0
+    for b in range(nb):
+        n_slots += bmeta[b, 4] + 2
+    return OK, nb, n_steps, n_slots
+
+
+@njit(cache=True, nogil=True)
+def emit_batches(
+    bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray,
+    bcol: np.ndarray, bcs: np.ndarray, bcm: np.ndarray, transposed: bool, n_prev: int,
+    kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
+    y_used: np.ndarray, x_used: np.ndarray,
+) -> int:
+    """Write the batches as waveform slots (EXTRACT, SHIFTs, IMPLANT) into an ``Operations`` table, after
+    clearing the ``n_prev`` slots of the previous plan. Returns the number of slots, or minus the number
+    needed if the table is too small (then nothing is written)."""
+    need = 0
+    for b in range(nb):
+        need += bmeta[b, 4] + 2
+    if need > kind.shape[0]:
+        return -need
+    for i in range(n_prev):
+        for j in range(y_used[i]):
+            y_site[i, j] = -1
+            y_delta[i, j] = 0
+        for j in range(x_used[i]):
+            x_site[i, j] = -1
+            x_delta[i, j] = 0
+        kind[i] = 0
+        y_used[i] = 0
+        x_used[i] = 0
+    n = 0
+    for b in range(nb):
+        a0, a1, b0, b1, n_shift = bmeta[b, 0], bmeta[b, 1], bmeta[b, 2], bmeta[b, 3], bmeta[b, 4]
+        for t in range(n_shift + 2):
+            if t == 0:
+                kind[n] = EXTRACT
+            elif t == n_shift + 1:
+                kind[n] = IMPLANT
+            else:
+                kind[n] = SHIFT
+            # internal rows -> y (x if transposed), internal columns -> x (y if transposed)
+            for i in range(a0, a1):
+                moved = min(t - 1, brm[i]) if t > 0 else 0
+                if moved < 0:
+                    moved = 0
+                site = brow[i] + brs[i] * moved
+                d = brs[i] if (kind[n] == SHIFT and t <= brm[i]) else 0
+                if transposed:
+                    x_site[n, i - a0] = site
+                    x_delta[n, i - a0] = d
+                else:
+                    y_site[n, i - a0] = site
+                    y_delta[n, i - a0] = d
+            for i in range(b0, b1):
+                moved = min(t - 1, bcm[i]) if t > 0 else 0
+                if moved < 0:
+                    moved = 0
+                site = bcol[i] + bcs[i] * moved
+                d = bcs[i] if (kind[n] == SHIFT and t <= bcm[i]) else 0
+                if transposed:
+                    y_site[n, i - b0] = site
+                    y_delta[n, i - b0] = d
+                else:
+                    x_site[n, i - b0] = site
+                    x_delta[n, i - b0] = d
+            if transposed:
+                x_used[n] = a1 - a0
+                y_used[n] = b1 - b0
+            else:
+                y_used[n] = a1 - a0
+                x_used[n] = b1 - b0
+            n += 1
+    return n

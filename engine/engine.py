@@ -116,7 +116,10 @@ class Engine:
             config=config,
             target=target,
             detector=Detector(config),
-            solver=Solver(nx=arr.nx, ny=arr.ny, algorithm=config.solver.algorithm, trap_source=arr.trap_source),
+            solver=Solver(
+                nx=arr.nx, ny=arr.ny, algorithm=config.solver.algorithm, trap_source=arr.trap_source,
+                objective=config.solver.objective,
+            ),
             bank=bank,
             streamer=Streamer(config, bank, dev.awg, dev.clock),
             image=np.zeros(dev.camera.frame_shape, dtype=np.uint16),

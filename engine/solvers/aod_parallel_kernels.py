@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 from llvmlite import ir
+from numba import config as numba_config
 from numba import njit, types
 from numba.extending import intrinsic
 
@@ -66,35 +67,43 @@ def find_rect(target: np.ndarray) -> tuple[int, int, int, int, int]:
     return r0, r1 + 1, c0, c1 + 1, ok
 
 
-@intrinsic
-def _ctpop(typingctx, x):  # noqa: ANN001, ANN202 - numba intrinsic: one popcnt instruction
-    sig = types.uint64(types.uint64)
+if numba_config.DISABLE_JIT:  # the kernels run as plain Python (the reference the tests compare against)
 
-    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
-        return builder.ctpop(args[0])
+    def _popcount(x: np.uint64) -> int:
+        return bin(int(x)).count("1")
 
-    return sig, codegen
+    def _lowbit_index(x: np.uint64) -> int:
+        x = int(x)
+        return (x & -x).bit_length() - 1
 
+else:
 
-@intrinsic
-def _cttz(typingctx, x):  # noqa: ANN001, ANN202 - numba intrinsic: count trailing zeros (x != 0)
-    sig = types.uint64(types.uint64)
+    @intrinsic
+    def _ctpop(typingctx, x):  # noqa: ANN001, ANN202 - one popcnt instruction
+        sig = types.uint64(types.uint64)
 
-    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
-        return builder.cttz(args[0], ir.Constant(ir.IntType(1), 1))
+        def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+            return builder.ctpop(args[0])
 
-    return sig, codegen
+        return sig, codegen
 
+    @intrinsic
+    def _cttz(typingctx, x):  # noqa: ANN001, ANN202 - count trailing zeros of a non-zero word
+        sig = types.uint64(types.uint64)
 
-@njit(cache=True, nogil=True, inline="always")
-def _popcount(x: np.uint64) -> int:
-    return int(_ctpop(x))
+        def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+            return builder.cttz(args[0], ir.Constant(ir.IntType(1), 1))
 
+        return sig, codegen
 
-@njit(cache=True, nogil=True, inline="always")
-def _lowbit_index(x: np.uint64) -> int:
-    """Index of the lowest set bit of a non-zero word."""
-    return int(_cttz(x))
+    @njit(cache=True, nogil=True, inline="always")
+    def _popcount(x: np.uint64) -> int:
+        return int(_ctpop(x))
+
+    @njit(cache=True, nogil=True, inline="always")
+    def _lowbit_index(x: np.uint64) -> int:
+        """Index of the lowest set bit of a non-zero word."""
+        return int(_cttz(x))
 
 
 @njit(cache=True, nogil=True, inline="always")

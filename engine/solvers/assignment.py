@@ -24,7 +24,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations, Plan
+from engine.operations import Operations, Plan
+from engine.solvers.assignment_batching import batch_hops, emit_hop_batches
 
 __all__ = ["AssignmentPlanner"]
 
@@ -40,9 +41,37 @@ class AssignmentPlanner:
             )
         self.nx = nx
         self.ny = ny
-        self.operations = Operations(nx=nx, ny=ny, capacity=256)
+        self.operations = Operations(nx=nx, ny=ny, capacity=4 * (nx + ny) + 256)
+        self.window = 256  # hops a batch looks ahead
+        self.extend = 1  # slots a hop may add to a batch's length
+        m = max(nx, ny)
+        self._occ0 = np.zeros((ny, nx), dtype=np.bool_)
+        self._occ = np.zeros((ny, nx), dtype=np.bool_)
+        self._blocked = np.zeros((ny, nx), dtype=np.bool_)
+        self._src_mark = np.zeros((ny, nx), dtype=np.bool_)
+        self._dst_mark = np.zeros((ny, nx), dtype=np.bool_)
+        self._done = np.zeros(nx * ny, dtype=np.bool_)
+        self._members = np.zeros(m, dtype=np.int64)
+        self._order_r = np.zeros(m, dtype=np.int64)
+        self._order_c = np.zeros(m, dtype=np.int64)
+        self._batch_ptr = np.zeros(nx * ny + 1, dtype=np.int64)
+        self._batch_hop = np.zeros(nx * ny, dtype=np.int64)
+        self._y_used = np.zeros(self.operations.capacity, dtype=np.int64)
+        self._x_used = np.zeros(self.operations.capacity, dtype=np.int64)
         self._hops: list[list[tuple[int, int]]] = []
         self._plan = Plan(steps=np.zeros((0, 2), dtype=np.int32), operations=self.operations, algorithm="assignment")
+        self._solved = False
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Compile (or load) the batching kernels now, not in the first cycle."""
+        occ = np.zeros((self.ny, self.nx), dtype=bool)
+        target = np.zeros_like(occ)
+        occ.flat[0] = True
+        target.flat[-1] = True
+        self.solve_moves(occ, target)
+        self.batch()
+        self.operations.clear()
         self._solved = False
 
     def check_target(self, target: np.ndarray) -> None:
@@ -57,6 +86,7 @@ class AssignmentPlanner:
             raise ValueError(f"occupancy {occupancy.shape} and target {target.shape} must both be {(self.ny, self.nx)}")
         self._solved = False
         occ = occupancy.astype(bool, copy=True)
+        self._occ0[:] = occ
         free = np.argwhere(occ & ~target)
         holes = np.argwhere(target & ~occ)
         if len(free) < len(holes):
@@ -101,27 +131,51 @@ class AssignmentPlanner:
         return best
 
     def batch(self) -> Plan:
-        """One single-tweezer batch per hop (EXTRACT, SHIFTs, IMPLANT)."""
+        """Hops in parallel batches (``assignment_batching``): atoms in distinct rows and columns move
+        together on one product set of tweezers, each along its own path."""
         if not self._solved:
             raise RuntimeError("batch() needs a successful solve_moves() first")
+        hops = self._hops
+        n_hops = len(hops)
+        n_cells = sum(len(h) for h in hops)
+        hop_ptr = np.zeros(n_hops + 1, dtype=np.int64)
+        hop_ptr[1:] = np.cumsum([len(h) for h in hops])
+        cells = np.array([site for h in hops for site in h], dtype=np.int64).reshape(n_cells, 2)
+        if self._done.size < n_hops:
+            self._done = np.zeros(2 * n_hops, dtype=np.bool_)
+        n_batches = batch_hops(
+            self._occ0, hop_ptr, n_hops, cells, self.window, self.extend, self._occ, self._done, self._blocked, self._src_mark, self._dst_mark, self._members, self._batch_ptr_for(n_hops),
+            self._batch_hop_for(n_hops),
+        )  # fmt: skip
+        if n_batches < 0:
+            raise RuntimeError("assignment: hops out of sequential order (a planner bug)")
         ops = self.operations
-        ops.clear()
-        n_slots = sum(len(h) + 1 for h in self._hops)
-        ops.reserve(n_slots)
-        steps = np.zeros((sum(len(h) - 1 for h in self._hops), 2), dtype=np.int32)
-        k = 0
-        nx = self.nx
-        for hop in self._hops:
-            r, c = hop[0]
-            ops.append(EXTRACT, [r], [c])
-            for r1, c1 in hop[1:]:
-                ops.append(SHIFT, [r], [c], [r1 - r], [c1 - c])
-                steps[k] = (r * nx + c, r1 * nx + c1)
-                k += 1
-                r, c = r1, c1
-            ops.append(IMPLANT, [r], [c])
-        self._plan.steps = steps
+        steps = np.zeros((n_cells - n_hops, 2), dtype=np.int32)
+        while True:
+            n, n_steps = emit_hop_batches(
+                hop_ptr, cells, self._batch_ptr, n_batches, self._batch_hop, self.nx, self._order_r,
+                self._order_c, ops.n, ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta,
+                self._y_used, self._x_used, steps,
+            )  # fmt: skip
+            if n >= 0:
+                break
+            ops.clear()
+            ops.reserve(2 * (-n))
+            self._y_used = np.zeros(ops.capacity, dtype=np.int64)
+            self._x_used = np.zeros(ops.capacity, dtype=np.int64)
+        ops.n = n
+        self._plan.steps = steps[:n_steps]
         return self._plan
+
+    def _batch_ptr_for(self, n_hops: int) -> np.ndarray:
+        if self._batch_ptr.size < n_hops + 1:
+            self._batch_ptr = np.zeros(2 * n_hops + 1, dtype=np.int64)
+        return self._batch_ptr
+
+    def _batch_hop_for(self, n_hops: int) -> np.ndarray:
+        if self._batch_hop.size < n_hops:
+            self._batch_hop = np.zeros(2 * n_hops, dtype=np.int64)
+        return self._batch_hop
 
 
 def _chain_hops(occ: np.ndarray, path: list[tuple[int, int]]) -> list[list[tuple[int, int]]]:

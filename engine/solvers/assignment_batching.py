@@ -1,0 +1,256 @@
+"""Parallel batching of single-atom hops (numba): many hops share one product set of tweezers.
+
+Input: hops in a valid *sequential* order (each runs over traps that are empty when its turn comes, as the
+assignment planner's chains do), each a path of one-site steps from its source to its destination.
+
+A batch takes a set of hops whose atoms sit in **distinct rows and distinct columns**: the product set of
+their rows x columns then holds exactly those atoms (the other intersections must be empty traps, checked)
+and every atom has its own row tone and column tone. Each slot every atom takes the next step of its path
+(its row tone moves for a vertical step, its column tone for a horizontal one, never both), so a batch
+lasts 2 + the longest path. It is legal when
+
+- the row tones keep their order at every slot, and so do the column tones (no crossing or merging), which
+  also keeps any two atoms out of each other's row and column, so they never meet;
+- every trap a path enters is empty now or is the source of an atom in the batch (extracted), and no two
+  hops end in the same trap;
+- the hop may run before the earlier hops it overtakes: its traps (source, path, destination) are not
+  touched by any of them.
+
+Hops are taken greedily in order: a batch starts with the first hop not yet run and adds every later hop
+(within a look-ahead window) that fits and does not make the batch longer than ``extend`` extra slots.
+One-site steps are listed slot by slot, which is a valid sequential order (two atoms in a batch are never
+adjacent, and a source is left in the first slot).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from engine.operations import EXTRACT, IMPLANT, SHIFT
+
+__all__ = ["batch_hops", "count_batched_slots"]
+
+
+@njit(cache=True, nogil=True)
+def _tones_keep_order(
+    members: np.ndarray, n_mem: int, k: int, hop_ptr: np.ndarray, cells: np.ndarray, axis: int
+) -> bool:
+    """Do hop ``k``'s tone on ``axis`` (0 rows, 1 columns) and every member's keep a strict order at every slot?"""
+    pk = hop_ptr[k]
+    lk = hop_ptr[k + 1] - pk - 1
+    for i in range(n_mem):
+        j = members[i]
+        pj = hop_ptr[j]
+        lj = hop_ptr[j + 1] - pj - 1
+        sign0 = cells[pk, axis] - cells[pj, axis]
+        if sign0 == 0:
+            return False
+        for t in range(1, max(lk, lj) + 1):
+            a = cells[pk + min(t, lk), axis]
+            b = cells[pj + min(t, lj), axis]
+            d = a - b
+            if d == 0 or (d > 0) != (sign0 > 0):
+                return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def batch_hops(
+    occ0: np.ndarray, hop_ptr: np.ndarray, n_hops: int, cells: np.ndarray, window: int, extend: int,
+    occ: np.ndarray, done: np.ndarray, blocked: np.ndarray, src_mark: np.ndarray, dst_mark: np.ndarray,
+    members: np.ndarray, batch_ptr: np.ndarray, batch_hop: np.ndarray,
+) -> int:
+    """Group the hops into batches: ``batch_hop[batch_ptr[b]:batch_ptr[b + 1]]`` are batch ``b``'s hops, in
+    the order they were taken. Returns the number of batches (-1 if the hops are not in a valid sequential
+    order). ``cells[hop_ptr[k]:hop_ptr[k + 1]]`` is hop
+    ``k``'s path (row, col) from source to destination; the scratch arrays are ``occ``-shaped."""
+    ny, nx = occ0.shape
+    occ[:, :] = occ0
+    for k in range(n_hops):
+        done[k] = False
+    n_batches = 0
+    n_taken = 0
+    first = 0
+    batch_ptr[0] = 0
+    while first < n_hops:
+        while first < n_hops and done[first]:
+            first += 1
+        if first >= n_hops:
+            break
+        blocked[:, :] = False
+        n_mem = 0
+        l_max = 0
+        scanned = 0
+        k = first
+        while k < n_hops and scanned < window:
+            if done[k]:
+                k += 1
+                continue
+            scanned += 1
+            p0 = hop_ptr[k]
+            p1 = hop_ptr[k + 1]
+            length = p1 - p0 - 1
+            sr = cells[p0, 0]
+            sc = cells[p0, 1]
+            dr = cells[p1 - 1, 0]
+            dc = cells[p1 - 1, 1]
+            fits = n_mem == 0 or length <= max(l_max, 1) + extend
+            if fits:
+                # footprint untouched by the earlier hops this batch overtakes
+                for p in range(p0, p1):
+                    if blocked[cells[p, 0], cells[p, 1]]:
+                        fits = False
+                        break
+            if fits and not occ[sr, sc]:
+                fits = False
+            if fits and n_mem > 0:
+                for i in range(n_mem):
+                    j = members[i]
+                    jr = cells[hop_ptr[j], 0]
+                    jc = cells[hop_ptr[j], 1]
+                    # distinct rows and columns, and no bystander at the crossings
+                    if jr == sr or jc == sc or occ[sr, jc] or occ[jr, sc]:
+                        fits = False
+                        break
+            if fits:
+                for p in range(p0 + 1, p1):
+                    r = cells[p, 0]
+                    c = cells[p, 1]
+                    if occ[r, c] and not src_mark[r, c]:
+                        fits = False
+                        break
+                if fits and dst_mark[dr, dc]:
+                    fits = False
+            if fits and n_mem > 0:
+                fits = _tones_keep_order(members, n_mem, k, hop_ptr, cells, 0) and _tones_keep_order(
+                    members, n_mem, k, hop_ptr, cells, 1
+                )
+            if fits:
+                members[n_mem] = k
+                n_mem += 1
+                if length > l_max:
+                    l_max = length
+                src_mark[sr, sc] = True
+                dst_mark[dr, dc] = True
+                done[k] = True
+            else:
+                for p in range(p0, p1):
+                    blocked[cells[p, 0], cells[p, 1]] = True
+            k += 1
+        if n_mem == 0:
+            return -1  # the first hop left cannot run: the hops were not in a valid sequential order
+        for i in range(n_mem):
+            j = members[i]
+            p0 = hop_ptr[j]
+            p1 = hop_ptr[j + 1]
+            src_mark[cells[p0, 0], cells[p0, 1]] = False
+            dst_mark[cells[p1 - 1, 0], cells[p1 - 1, 1]] = False
+            occ[cells[p0, 0], cells[p0, 1]] = False
+        for i in range(n_mem):
+            j = members[i]
+            p1 = hop_ptr[j + 1]
+            occ[cells[p1 - 1, 0], cells[p1 - 1, 1]] = True
+            batch_hop[n_taken] = j
+            n_taken += 1
+        n_batches += 1
+        batch_ptr[n_batches] = n_taken
+    return n_batches
+
+
+@njit(cache=True, nogil=True)
+def count_batched_slots(hop_ptr: np.ndarray, batch_ptr: np.ndarray, n_batches: int, batch_hop: np.ndarray) -> int:
+    n = 0
+    for b in range(n_batches):
+        l_max = 0
+        for i in range(batch_ptr[b], batch_ptr[b + 1]):
+            k = batch_hop[i]
+            l_max = max(l_max, hop_ptr[k + 1] - hop_ptr[k] - 1)
+        n += l_max + 2
+    return n
+
+
+@njit(cache=True, nogil=True)
+def emit_hop_batches(
+    hop_ptr: np.ndarray, cells: np.ndarray, batch_ptr: np.ndarray, n_batches: int, batch_hop: np.ndarray,
+    nx: int, order_r: np.ndarray, order_c: np.ndarray, n_prev: int,
+    kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
+    y_used: np.ndarray, x_used: np.ndarray, steps: np.ndarray,
+) -> tuple[int, int]:
+    """Write the batches as slots (after clearing the previous plan's ``n_prev``) and the one-site steps
+    slot by slot. Returns (slots, steps), or (-needed slots, 0) if the table is too small."""
+    need = count_batched_slots(hop_ptr, batch_ptr, n_batches, batch_hop)
+    if need > kind.shape[0]:
+        return -need, 0
+    for i in range(n_prev):
+        for j in range(y_used[i]):
+            y_site[i, j] = -1
+            y_delta[i, j] = 0
+        for j in range(x_used[i]):
+            x_site[i, j] = -1
+            x_delta[i, j] = 0
+        kind[i] = 0
+        y_used[i] = 0
+        x_used[i] = 0
+    n = 0
+    n_steps = 0
+    for b in range(n_batches):
+        a0 = batch_ptr[b]
+        a1 = batch_ptr[b + 1]
+        m = a1 - a0
+        l_max = 0
+        for i in range(a0, a1):
+            k = batch_hop[i]
+            l_max = max(l_max, hop_ptr[k + 1] - hop_ptr[k] - 1)
+        # tone order per axis: the members sorted by source row / column (the order never changes)
+        for i in range(m):
+            order_r[i] = batch_hop[a0 + i]
+            order_c[i] = batch_hop[a0 + i]
+        for i in range(1, m):
+            v = order_r[i]
+            j = i - 1
+            while j >= 0 and cells[hop_ptr[order_r[j]], 0] > cells[hop_ptr[v], 0]:
+                order_r[j + 1] = order_r[j]
+                j -= 1
+            order_r[j + 1] = v
+            v = order_c[i]
+            j = i - 1
+            while j >= 0 and cells[hop_ptr[order_c[j]], 1] > cells[hop_ptr[v], 1]:
+                order_c[j + 1] = order_c[j]
+                j -= 1
+            order_c[j + 1] = v
+        for t in range(l_max + 2):
+            if t == 0:
+                kind[n] = EXTRACT
+            elif t == l_max + 1:
+                kind[n] = IMPLANT
+            else:
+                kind[n] = SHIFT
+            at = t - 1 if t > 0 else 0  # cell index at the start of this slot
+            if t == l_max + 1:
+                at = l_max
+            for i in range(m):
+                k = order_r[i]
+                p0 = hop_ptr[k]
+                ln = hop_ptr[k + 1] - p0 - 1
+                q = min(at, ln)
+                y_site[n, i] = cells[p0 + q, 0]
+                y_delta[n, i] = cells[p0 + q + 1, 0] - cells[p0 + q, 0] if (kind[n] == SHIFT and t <= ln) else 0
+                k = order_c[i]
+                p0 = hop_ptr[k]
+                ln = hop_ptr[k + 1] - p0 - 1
+                q = min(at, ln)
+                x_site[n, i] = cells[p0 + q, 1]
+                x_delta[n, i] = cells[p0 + q + 1, 1] - cells[p0 + q, 1] if (kind[n] == SHIFT and t <= ln) else 0
+            y_used[n] = m
+            x_used[n] = m
+            if kind[n] == SHIFT:
+                for i in range(a0, a1):
+                    k = batch_hop[i]
+                    p0 = hop_ptr[k]
+                    if t <= hop_ptr[k + 1] - p0 - 1:
+                        steps[n_steps, 0] = cells[p0 + t - 1, 0] * nx + cells[p0 + t - 1, 1]
+                        steps[n_steps, 1] = cells[p0 + t, 0] * nx + cells[p0 + t, 1]
+                        n_steps += 1
+            n += 1
+    return n, n_steps

@@ -101,6 +101,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from server import bench_soak
 
     bench_soak.register(bench_sub)
+    from server import bench_solvers
+
+    bench_solvers.register(bench_sub)
     from server import devices_cmd
 
     devices_cmd.register(sub)

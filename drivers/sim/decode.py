@@ -34,6 +34,21 @@ fit the slot with room for five of them to mean different times: ``window_s <= 0
 ``SampleDecoder`` raises ``DecodeConfigError`` at construction when a configuration violates it. Transitions
 must also linger near the half-site point for a good part of a window: min-jerk, and tanh/erf up to a
 sharpness of about 8 (at 1 MHz / 10 us) decode; much sharper jumps look like a hand-off at mid-slot.
+
+Speed
+-----
+``decode`` runs one numba kernel per axis (``_decode_axis``) that projects each window straight from the
+interleaved samples and classifies the slot in the same pass. It computes only the coefficients the
+classifier reads: every grid point of the mid window, the site points of the start and end windows, and the
+site points of the quarter windows only in slots that have a mover. A slot's tracks depend on nothing but
+its own samples on that axis, so a slot equal to the previous one (holds, repeated steps) copies its tracks,
+a silent slot has none, and every other slot is looked up first in a per-axis cache of recently decoded
+slots keyed by two 64-bit universal hashes of its samples (a grid shot's slots recur across cycles and
+shots). The cache is a fixed 4-way set-associative table with least-recently-used replacement, allocated
+(and touched) when the decoder is built, so memory does not grow while the lab runs. The plain-numpy
+path (``amplitudes`` + ``_classify``, i.e. ``decode_reference``) stays as the reference; both run the same
+per-slot classifier, and the only difference is float32 rounding in the projection (sequential sums here,
+BLAS blocking there), far below every threshold's margin.
 """
 
 from __future__ import annotations
@@ -66,6 +81,10 @@ REPORT_FRACTION = 0.3
 #: Longest window as a fraction of the slot (see the resolution condition above).
 MAX_WINDOW_FRACTION = 0.4
 
+
+#: Memory of each axis's cache of decoded slots (entries: a power of two, at most 8192), and its ways per set.
+SLOT_CACHE_BYTES = 8 << 20
+CACHE_WAYS = 4
 
 #: A transition's 10-90 % time must be at least this many window lengths for the mid window to see it.
 MIN_TRANSITION_PER_WINDOW = 0.8
@@ -247,12 +266,19 @@ class SampleDecoder:
         )
         self._proj = [a.projector(self.sample_rate_hz, w) for a in axes]
         self._gather = self.window_offsets[:, None] + np.arange(w, dtype=np.int64)[None, :]  # [W, L]
-        # compile (or load from cache) the classifier now, not during the first playback
+        self._kernel_args = [
+            _KernelArgs.build(p, (a.ref_amp * self.full_scale).astype(np.float32), a.n_sites)
+            for p, a in zip(self._proj, axes)
+        ]
+        # the cache's hash weights (``_hash_slots``): fixed random 32-bit numbers, one pair per sample of a slot
+        self._hash_weights = np.random.default_rng(0x51075).integers(0, 1 << 32, (2, n), dtype=np.uint64)
+        # compile (or load from cache) the kernels now, not during the first playback
         q = self._axes[0].grid_hz.size
         _classify(
             np.zeros((1, len(WINDOW_CENTRES), q), np.float32), self._axes[0].n_sites, MOVER_FRACTION,
             REPORT_FRACTION, np.zeros((1, 2 * self._axes[0].n_sites, 4), np.float32), np.zeros(1, np.int32),
         )
+        self.decode(np.zeros((2 * self.slot_samples, self.n_channels), dtype=np.int16))
 
     @property
     def n_axes(self) -> int:
@@ -279,6 +305,32 @@ class SampleDecoder:
         """Tracks of every whole slot in ``samples`` (``int16[n, n_channels]``; a tail shorter than a slot is ignored)."""
         if samples.ndim != 2 or samples.shape[1] < self.n_axes:
             raise ValueError(f"expected int16[n, >= {self.n_axes}] samples, got shape {samples.shape}")
+        if samples.dtype != np.int16:
+            return self.decode_reference(samples)
+        samples = np.ascontiguousarray(samples)
+        n_slots = samples.shape[0] // self.slot_samples
+        hashes = np.empty((self.n_axes, n_slots, 2), dtype=np.uint64)
+        silent = np.empty((self.n_axes, n_slots), dtype=np.bool_)
+        _hash_slots(samples.reshape(-1), samples.shape[1], self.slot_samples, self._hash_weights, hashes, silent)
+        tracks: list[np.ndarray] = []
+        counts: list[np.ndarray] = []
+        for axis, model in enumerate(self._axes):
+            out = np.zeros((n_slots, 2 * model.n_sites, 4), dtype=np.float32)
+            cnt = np.zeros(n_slots, dtype=np.int32)
+            k = self._kernel_args[axis]
+            _decode_axis(
+                samples, axis, self.slot_samples, self.window_offsets, k.pt_mid, k.den_mid, k.pt_site, k.den_site,
+                model.n_sites, MOVER_FRACTION, REPORT_FRACTION, k.amp, k.acc, out, cnt,
+                hashes[axis], silent[axis], k.cache_meta, k.cache_clock, k.cache_tracks, k.cache_count,
+            )  # fmt: skip
+            tracks.append(out)
+            counts.append(cnt)
+        return _segment(n_slots, tracks, counts, all(_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts)))
+
+    def decode_reference(self, samples: np.ndarray) -> DecodedSegment:
+        """``decode`` the plain way: every amplitude of every window by one matrix product, then classify."""
+        if samples.ndim != 2 or samples.shape[1] < self.n_axes:
+            raise ValueError(f"expected int16[n, >= {self.n_axes}] samples, got shape {samples.shape}")
         n_slots = samples.shape[0] // self.slot_samples
         tracks: list[np.ndarray] = []
         counts: list[np.ndarray] = []
@@ -290,15 +342,259 @@ class SampleDecoder:
                 _classify(self.amplitudes(samples, axis), model.n_sites, MOVER_FRACTION, REPORT_FRACTION, out, cnt)
             tracks.append(out)
             counts.append(cnt)
-        stationary = all(_is_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts))
-        return DecodedSegment(
-            n_slots=n_slots,
-            x=tracks[0],
-            x_count=counts[0],
-            y=tracks[1] if len(tracks) > 1 else None,
-            y_count=counts[1] if len(counts) > 1 else None,
-            stationary=stationary,
+        return _segment(n_slots, tracks, counts, all(_is_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts)))
+
+
+def _segment(n_slots: int, tracks: list[np.ndarray], counts: list[np.ndarray], stationary: bool) -> DecodedSegment:
+    return DecodedSegment(
+        n_slots=n_slots,
+        x=tracks[0],
+        x_count=counts[0],
+        y=tracks[1] if len(tracks) > 1 else None,
+        y_count=counts[1] if len(counts) > 1 else None,
+        stationary=stationary,
+    )
+
+
+@dataclass
+class _KernelArgs:
+    """One axis's projector rows in the layout ``_decode_axis`` reads, plus its scratch.
+
+    ``pt_mid``: ``float32[L, 2(2n - 1)]``, the cos then sin rows of grid points ``q = 1 .. 2n - 1`` (all the
+    mid window's points the classifier reads), transposed so a window is summed sample by sample;
+    ``pt_site``: ``float32[L, 2n]``, the same for the site points ``q = 2k + 1``. The rows are rows of the
+    same least-squares projector (``_AxisModel.projector``): a subset of its outputs, not a different fit.
+    """
+
+    pt_mid: np.ndarray
+    den_mid: np.ndarray
+    pt_site: np.ndarray
+    den_site: np.ndarray
+    amp: np.ndarray
+    acc: np.ndarray
+    cache_meta: np.ndarray  # uint64[entries, 3]: the slot's two hashes, and when it was last used (0: empty)
+    cache_clock: np.ndarray  # uint64[1]: lookups so far (the "last used" clock)
+    cache_tracks: np.ndarray  # float32[entries, 2 n_sites, 4]
+    cache_count: np.ndarray  # int32[entries]
+
+    @classmethod
+    def build(cls, proj: np.ndarray, den: np.ndarray, n_sites: int) -> _KernelArgs:
+        q = den.size
+        mid = np.arange(1, 2 * n_sites)
+        site = np.arange(1, 2 * n_sites, 2)
+        entries = 1 << int(np.clip(np.log2(SLOT_CACHE_BYTES / (2 * n_sites * 16)), 4, 13))
+        # np.full writes every page now: the cache's memory is resident from the start, never grows later
+        return cls(
+            pt_mid=np.ascontiguousarray(np.concatenate([proj[mid], proj[q + mid]]).T),
+            den_mid=np.ascontiguousarray(den[mid]),
+            pt_site=np.ascontiguousarray(np.concatenate([proj[site], proj[q + site]]).T),
+            den_site=np.ascontiguousarray(den[site]),
+            amp=np.zeros((len(WINDOW_CENTRES), q), dtype=np.float32),
+            acc=np.zeros(2 * mid.size, dtype=np.float32),
+            cache_meta=np.full((entries, 3), 0, dtype=np.uint64),
+            cache_clock=np.zeros(1, dtype=np.uint64),
+            cache_tracks=np.full((entries, 2 * n_sites, 4), 0.0, dtype=np.float32),
+            cache_count=np.full(entries, 0, dtype=np.int32),
         )
+
+
+@njit(cache=True, nogil=True)
+def _project(samples: np.ndarray, axis: int, start: int, pt: np.ndarray, acc: np.ndarray) -> None:
+    """``acc[r] = sum_l pt[l, r] * samples[start + l, axis]`` in float32, summed in sample order.
+
+    Sample-major with the rows innermost: the inner loop is independent per row, so it vectorises without
+    reassociating any sum (deterministic, no fastmath), and four samples per pass cut the ``acc`` traffic
+    (the parenthesised chain is the same sequential sum; eight per pass, FMA contraction and blocking four
+    windows per pass over ``pt`` measured no faster).
+    """
+    n_rows = pt.shape[1]
+    n = pt.shape[0]
+    acc[:n_rows] = 0.0
+    n4 = n - n % 4
+    for i in range(0, n4, 4):
+        x0 = np.float32(samples[start + i, axis])
+        x1 = np.float32(samples[start + i + 1, axis])
+        x2 = np.float32(samples[start + i + 2, axis])
+        x3 = np.float32(samples[start + i + 3, axis])
+        p0 = pt[i]
+        p1 = pt[i + 1]
+        p2 = pt[i + 2]
+        p3 = pt[i + 3]
+        for r in range(n_rows):
+            acc[r] = (((acc[r] + p0[r] * x0) + p1[r] * x1) + p2[r] * x2) + p3[r] * x3
+    for i in range(n4, n):
+        x = np.float32(samples[start + i, axis])
+        p = pt[i]
+        for r in range(n_rows):
+            acc[r] += p[r] * x
+
+
+@njit(cache=True, nogil=True)
+def _window_amplitudes(
+    samples: np.ndarray, axis: int, start: int, pt: np.ndarray, den: np.ndarray, acc: np.ndarray,
+    amp_w: np.ndarray, q0: int, q_step: int,
+) -> None:  # fmt: skip
+    """``amp_w[q0 + i * q_step] = |(cos, sin) coefficient i| / den[i]`` for the rows of ``pt``."""
+    _project(samples, axis, start, pt, acc)
+    m = den.size
+    for i in range(m):
+        amp_w[q0 + i * q_step] = np.float32(np.hypot(acc[i], acc[m + i])) / den[i]
+
+
+@njit(cache=True, nogil=True)
+def _decode_axis(
+    samples: np.ndarray,
+    axis: int,
+    slot_samples: int,
+    offsets: np.ndarray,
+    pt_mid: np.ndarray,
+    den_mid: np.ndarray,
+    pt_site: np.ndarray,
+    den_site: np.ndarray,
+    n_sites: int,
+    mover_frac: float,
+    report_frac: float,
+    amp: np.ndarray,
+    acc: np.ndarray,
+    out: np.ndarray,
+    count: np.ndarray,
+    hashes: np.ndarray,
+    silent: np.ndarray,
+    cache_meta: np.ndarray,
+    cache_clock: np.ndarray,
+    cache_tracks: np.ndarray,
+    cache_count: np.ndarray,
+) -> None:
+    """Project and classify every slot of one axis (see "Speed" in the module docstring); ``hashes[s]`` and
+    ``silent[s]`` come from ``_hash_slots``."""
+    mover = np.zeros(max(n_sites - 1, 1), dtype=np.bool_)
+    origin = np.zeros(n_sites, dtype=np.bool_)
+    dest = np.zeros(n_sites, dtype=np.bool_)
+    set_mask = np.uint64(cache_meta.shape[0] // CACHE_WAYS - 1)
+    for s in range(out.shape[0]):
+        base = s * slot_samples
+        if silent[s]:  # every amplitude is 0: no tracks
+            count[s] = 0
+            continue
+        h1 = hashes[s, 0]
+        h2 = hashes[s, 1]
+        if s > 0 and h1 == hashes[s - 1, 0] and h2 == hashes[s - 1, 1]:
+            same = True  # very likely the previous slot again: check it sample by sample
+            for i in range(slot_samples):
+                if samples[base + i, axis] != samples[base - slot_samples + i, axis]:
+                    same = False
+                    break
+            if same:  # the same samples decode to the same tracks
+                m = count[s - 1]
+                out[s, :m] = out[s - 1, :m]
+                count[s] = m
+                continue
+        c = _cache_way(cache_meta, cache_clock, int(h1 & set_mask) * CACHE_WAYS, h1, h2)
+        if cache_meta[c, 0] == h1 and cache_meta[c, 1] == h2:
+            m = cache_count[c]
+            out[s, :m] = cache_tracks[c, :m]
+            count[s] = m
+            continue
+        amp[:, :] = 0.0
+        _window_amplitudes(samples, axis, base + offsets[2], pt_mid, den_mid, acc, amp[2], 1, 1)
+        _window_amplitudes(samples, axis, base + offsets[0], pt_site, den_site, acc, amp[0], 1, 2)
+        _window_amplitudes(samples, axis, base + offsets[4], pt_site, den_site, acc, amp[4], 1, 2)
+        if _find_movers(amp, n_sites, mover_frac, mover):  # runs need the quarter windows for their direction
+            _window_amplitudes(samples, axis, base + offsets[1], pt_site, den_site, acc, amp[1], 1, 2)
+            _window_amplitudes(samples, axis, base + offsets[3], pt_site, den_site, acc, amp[3], 1, 2)
+        m = _classify_slot(amp, n_sites, mover_frac, report_frac, out[s], mover, origin, dest)
+        count[s] = m
+        cache_meta[c, 0] = h1
+        cache_meta[c, 1] = h2
+        cache_tracks[c, :m] = out[s, :m]
+        cache_count[c] = m
+
+
+@njit(cache=True, nogil=True)
+def _cache_way(meta: np.ndarray, clock: np.ndarray, first: int, h1: np.uint64, h2: np.uint64) -> int:
+    """The entry of the set starting at ``first`` that holds ``(h1, h2)``, else the least recently used one
+    (an empty entry first), to be filled; either way it is marked used now."""
+    clock[0] += np.uint64(1)
+    pick = first
+    for c in range(first, first + CACHE_WAYS):
+        if meta[c, 2] != 0 and meta[c, 0] == h1 and meta[c, 1] == h2:
+            pick = c
+            break
+        if meta[c, 2] < meta[pick, 2]:
+            pick = c
+    else:
+        meta[pick, 0] = ~h1  # claimed for a new slot: cannot match (h1, h2) until it is filled
+    meta[pick, 2] = clock[0]
+    return pick
+
+
+@njit(cache=True, nogil=True)
+def _hash_slots(
+    flat: np.ndarray, n_channels: int, slot_samples: int, weights: np.ndarray, hashes: np.ndarray, silent: np.ndarray
+) -> None:
+    """``hashes[axis, s]``: two independent multilinear hashes ``sum_i w[i] * u[i]`` of slot ``s``'s samples on
+    ``axis`` (``u`` the samples as uint16, ``w`` two rows of fixed random 32-bit weights); ``silent[axis, s]``:
+    all its samples are 0. ``flat`` is the C-ordered ``int16[n, n_channels]`` samples, flattened.
+
+    Why these: each term is below 2^48, so for slots of fewer than 2^16 samples (10 us at up to 6.5 GS/s) the
+    sums never wrap, and two different slots (some ``u_j`` differs) collide in one hash only if ``w_j`` hits
+    one value out of 2^32: in both, about 2^-64 per comparison whatever the samples are (a universal hash
+    family, so no assumption about the waveforms is needed). It is also a multiply-add loop that vectorises
+    (two channels get a loop with a constant stride for that), unlike byte-serial hashes (~3x slower here).
+    """
+    for axis in range(hashes.shape[0]):
+        for s in range(hashes.shape[1]):
+            start = n_channels * s * slot_samples + axis
+            if n_channels == 2:
+                h1, h2, nz = _hash_stride2(flat, start, slot_samples, weights)
+            else:
+                h1, h2, nz = _hash_stride(flat, start, n_channels, slot_samples, weights)
+            hashes[axis, s, 0] = h1
+            hashes[axis, s, 1] = h2
+            silent[axis, s] = nz == 0
+
+
+@njit(cache=True, nogil=True)
+def _hash_stride2(flat: np.ndarray, start: int, n: int, weights: np.ndarray) -> tuple[np.uint64, np.uint64, int]:
+    """``_hash_stride`` for two channels, with the stride a constant so that the loop vectorises."""
+    h1 = np.uint64(0)
+    h2 = np.uint64(0)
+    nz = 0
+    for i in range(n):
+        v = flat[start + 2 * i]
+        nz |= v
+        u = np.uint64(np.uint16(v))
+        h1 += weights[0, i] * u
+        h2 += weights[1, i] * u
+    return h1, h2, nz
+
+
+@njit(cache=True, nogil=True)
+def _hash_stride(
+    flat: np.ndarray, start: int, stride: int, n: int, weights: np.ndarray
+) -> tuple[np.uint64, np.uint64, int]:
+    """The two hashes of ``flat[start + stride * i]``, ``i < n``, and the OR of those samples."""
+    h1 = np.uint64(0)
+    h2 = np.uint64(0)
+    nz = 0
+    for i in range(n):
+        v = flat[start + stride * i]
+        nz |= v
+        u = np.uint64(np.uint16(v))
+        h1 += weights[0, i] * u
+        h2 += weights[1, i] * u
+    return h1, h2, nz
+
+
+@njit(cache=True, nogil=True)
+def _stationary(tracks: np.ndarray, count: np.ndarray, full: float) -> bool:
+    """``_is_stationary`` as a loop: no track moves or crosses ``full`` in any slot."""
+    for s in range(tracks.shape[0]):
+        for m in range(count[s]):
+            t = tracks[s, m]
+            if t[0] != t[1] or (t[2] >= full) != (t[3] >= full):
+                return False
+    return True
 
 
 @njit(cache=True, nogil=True)
@@ -310,49 +606,74 @@ def _classify(
     origin = np.zeros(n_sites, dtype=np.bool_)
     dest = np.zeros(n_sites, dtype=np.bool_)
     for s in range(amp.shape[0]):
-        a = amp[s]
-        m = 0
-        for k in range(n_sites - 1):
-            q = 2 * k + 2
-            v = a[2, q]
-            mover[k] = v >= mover_frac and v >= a[2, q - 1] and v >= a[2, q + 1]
-        origin[:] = False
-        dest[:] = False
-        k = 0
-        while k < n_sites - 1:
-            if not mover[k]:
-                k += 1
-                continue
-            ka = k
-            while k + 1 < n_sites - 1 and mover[k + 1]:
-                k += 1
-            kb = k
-            lo = 2 * ka + 1
-            hi = 2 * (kb + 1) + 1
-            early = a[0, lo] + a[1, lo] - a[0, hi] - a[1, hi]
-            late = a[3, hi] + a[4, hi] - a[3, lo] - a[4, lo]
-            forward = early + late >= 0.0
-            for j in range(ka, kb + 1):
-                src = j if forward else j + 1
-                dst = j + 1 if forward else j
-                origin[src] = True
-                dest[dst] = True
-                out[s, m, 0] = src
-                out[s, m, 1] = dst
-                out[s, m, 2] = a[0, 2 * src + 1]
-                out[s, m, 3] = a[4, 2 * dst + 1]
-                m += 1
+        _find_movers(amp[s], n_sites, mover_frac, mover)
+        count[s] = _classify_slot(amp[s], n_sites, mover_frac, report_frac, out[s], mover, origin, dest)
+
+
+@njit(cache=True, nogil=True)
+def _find_movers(a: np.ndarray, n_sites: int, mover_frac: float, mover: np.ndarray) -> bool:
+    """``mover[k]``: a local maximum of at least ``mover_frac`` at ``k + 1/2`` in the mid window; any?"""
+    found = False
+    for k in range(n_sites - 1):
+        q = 2 * k + 2
+        v = a[2, q]
+        mover[k] = v >= mover_frac and v >= a[2, q - 1] and v >= a[2, q + 1]
+        found = found or mover[k]
+    return found
+
+
+@njit(cache=True, nogil=True)
+def _classify_slot(
+    a: np.ndarray,
+    n_sites: int,
+    mover_frac: float,
+    report_frac: float,
+    out: np.ndarray,
+    mover: np.ndarray,
+    origin: np.ndarray,
+    dest: np.ndarray,
+) -> int:
+    """Tracks of one slot from its amplitudes ``a[window, q]`` and ``mover`` (from ``_find_movers``) into
+    ``out``; returns how many. Reads ``a[2, 1 .. 2n - 1]``, the site points of windows 0 and 4, and the
+    site points of windows 1 and 3 at the ends of mover runs only."""
+    m = 0
+    origin[:] = False
+    dest[:] = False
+    k = 0
+    while k < n_sites - 1:
+        if not mover[k]:
             k += 1
-        for k in range(n_sites):
-            a0 = 0.0 if origin[k] else a[0, 2 * k + 1]
-            a1 = 0.0 if dest[k] else a[4, 2 * k + 1]
-            if a0 >= report_frac or a1 >= report_frac:
-                out[s, m, 0] = k
-                out[s, m, 1] = k
-                out[s, m, 2] = a0
-                out[s, m, 3] = a1
-                m += 1
-        count[s] = m
+            continue
+        ka = k
+        while k + 1 < n_sites - 1 and mover[k + 1]:
+            k += 1
+        kb = k
+        lo = 2 * ka + 1
+        hi = 2 * (kb + 1) + 1
+        early = a[0, lo] + a[1, lo] - a[0, hi] - a[1, hi]
+        late = a[3, hi] + a[4, hi] - a[3, lo] - a[4, lo]
+        forward = early + late >= 0.0
+        for j in range(ka, kb + 1):
+            src = j if forward else j + 1
+            dst = j + 1 if forward else j
+            origin[src] = True
+            dest[dst] = True
+            out[m, 0] = src
+            out[m, 1] = dst
+            out[m, 2] = a[0, 2 * src + 1]
+            out[m, 3] = a[4, 2 * dst + 1]
+            m += 1
+        k += 1
+    for k in range(n_sites):
+        a0 = 0.0 if origin[k] else a[0, 2 * k + 1]
+        a1 = 0.0 if dest[k] else a[4, 2 * k + 1]
+        if a0 >= report_frac or a1 >= report_frac:
+            out[m, 0] = k
+            out[m, 1] = k
+            out[m, 2] = a0
+            out[m, 3] = a1
+            m += 1
+    return m
 
 
 def _is_stationary(tracks: np.ndarray, count: np.ndarray, full: float) -> bool:

@@ -14,6 +14,14 @@ Two kinds of trap, following ``array.trap_source``:
 Loss: ``survival_transfer`` per extract/implant, ``survival_step`` per one-site move, and vacuum lifetime
 ``exp(-dt / tau)`` per atom over clock time (``elapse_to``). ``lossless`` turns all of it off (collisions
 and dropped atoms still lose atoms: they are mistakes, not noise). Counters record every cause.
+
+Speed: a grid shot applies ~500 slots and as many vacuum steps, so each is one numba kernel call over the
+world's own arrays (``_tweezer_slot``, ``_chain_slot``, ``_vacuum``) instead of a dozen small numpy ops. The
+plain-numpy versions stay as the reference (``World(reference=True)``) and a test holds the two equal. Random
+draws come from ``_Uniforms``, a buffer filled from ``rng`` in order: handing a ``Generator`` to a numba
+function costs ~20 us per call (more than the slot itself), and since every draw the world makes is a uniform
+double consumed in a fixed order, reading them from a pre-drawn buffer yields exactly the values the direct
+``rng.random(n)`` calls would (same seed, same atoms lost; ``rng`` only runs ahead of what is consumed).
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from numba import njit
 
 from drivers.sim.decode import FULL_FRACTION, DecodedSegment
 from engine.config import SystemConfig
@@ -59,8 +68,51 @@ class WorldCounters:
         return {**asdict(self), "lost": self.lost}
 
 
+class _Uniforms:
+    """Uniform doubles drawn from ``rng`` ahead of use and handed out strictly in order.
+
+    ``Generator.random(n)`` is ``n`` successive ``next_double`` calls, so any sequence of ``take(n_i)`` (or a
+    kernel reading ``buf[pos:pos + k]``) sees exactly the numbers the same sequence of ``rng.random(n_i)``
+    calls would have returned. This is what lets the numba kernels draw without being handed the
+    ``Generator`` (whose unboxing costs more than a slot's work).
+    """
+
+    CHUNK = 1 << 14
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.buf = np.empty(0, dtype=np.float64)
+        self.pos = 0
+
+    def ensure(self, n: int) -> None:
+        """Make at least ``n`` unread numbers available from ``pos`` (unread ones move to the front first)."""
+        left = self.buf.size - self.pos
+        if left >= n:
+            return
+        size = max(self.buf.size, self.CHUNK, 2 * n)
+        if size != self.buf.size:
+            buf = np.empty(size, dtype=np.float64)
+            buf[:left] = self.buf[self.pos :]
+            self.buf = buf
+        else:
+            self.buf[:left] = self.buf[self.pos :].copy()
+        self.rng.random(out=self.buf[left:])
+        self.pos = 0
+
+    def take(self, n: int) -> np.ndarray:
+        """The next ``n`` numbers (a view, valid until the next ``ensure``)."""
+        self.ensure(n)
+        out = self.buf[self.pos : self.pos + n]
+        self.pos += n
+        return out
+
+
 class World:
-    """Atoms in static traps and in mobile tweezers; seeded, so a shot replays exactly."""
+    """Atoms in static traps and in mobile tweezers; seeded, so a shot replays exactly.
+
+    ``reference=True`` runs the plain-numpy slot and vacuum code instead of the numba kernels (same results,
+    same random numbers; kept to test the kernels against).
+    """
 
     def __init__(
         self,
@@ -69,13 +121,25 @@ class World:
         clock: Clock | None = None,
         rng: np.random.Generator | None = None,
         lossless: bool | None = None,
+        reference: bool = False,
     ) -> None:
         self.clock = clock
         self.rng = rng if rng is not None else np.random.default_rng(config.sim.seed)
         self.counters = WorldCounters()
+        self.reference = reference
         self.nx = self.ny = 0
         self.reconfigure(config, lossless=lossless)
         self._t_s = clock.now_s() if clock is not None else 0.0
+        _warm_up()
+
+    @property
+    def rng(self) -> np.random.Generator:
+        return self._uniforms.rng
+
+    @rng.setter
+    def rng(self, rng: np.random.Generator) -> None:
+        """A new generator drops the numbers pre-drawn from the old one."""
+        self._uniforms = _Uniforms(rng)
 
     def reconfigure(self, config: SystemConfig, *, lossless: bool | None = None) -> None:
         """Adopt the array and loss model of ``config``; a new array size starts empty (between shots only)."""
@@ -91,12 +155,15 @@ class World:
             self.nx, self.ny = arr.nx, arr.ny
             self._static = np.zeros((self.ny, self.nx), dtype=bool)
             self._held = np.zeros((self.ny, self.nx), dtype=bool)  # atoms in tweezers, at the tweezer's site
+            self._covered = np.zeros((self.ny, self.nx), dtype=bool)  # kernel scratch
+            self._flags = np.zeros((0, 6), dtype=np.bool_)  # kernel scratch, one row per tweezer
+            self._chain_scratch = np.zeros((2, self.nx), dtype=np.int64)
 
     # --- state -----------------------------------------------------------------------------------------
 
     def load(self) -> np.ndarray:
         """Empty every trap and tweezer, then fill each trap with probability ``loading_probability``."""
-        self._static[:] = self.rng.random((self.ny, self.nx)) < self.loading_probability
+        self._static[:] = self._uniforms.take(self.ny * self.nx).reshape(self.ny, self.nx) < self.loading_probability
         self._held[:] = False
         self.counters.loaded += int(self._static.sum())
         self._t_s = self._now()
@@ -141,17 +208,28 @@ class World:
         if self.lossless:
             return
         p_keep = float(np.exp(-dt / self.vacuum_lifetime_s))
+        if self.reference:
+            self._vacuum_reference(p_keep)
+            return
+        u = self._uniforms
+        need = self._static.size + self._held.size
+        if u.buf.size - u.pos < need:
+            u.ensure(need)
+        u.pos, lost = _vacuum(self._static, self._held, u.buf, u.pos, p_keep)
+        self.counters.lost_vacuum += lost
+
+    def _vacuum_reference(self, p_keep: float) -> None:
         for grid in (self._static, self._held):
             idx = np.flatnonzero(grid)
             if idx.size:
-                gone = idx[self.rng.random(idx.size) >= p_keep]
+                gone = idx[self._uniforms.take(idx.size) >= p_keep]
                 grid.flat[gone] = False
                 self.counters.lost_vacuum += int(gone.size)
 
     def _survive(self, n: int, p: float) -> np.ndarray:
         if self.lossless or p >= 1.0:
             return np.ones(n, dtype=bool)
-        return self.rng.random(n) < p
+        return self._uniforms.take(n) < p
 
     # --- slots -----------------------------------------------------------------------------------------
 
@@ -159,11 +237,39 @@ class World:
         """Apply one decoded slot: ``*_tracks`` are ``[m, 4]`` rows ``(site0, site1, amp0, amp1)``."""
         self.counters.slots += 1
         if self.trap_source == "aod":
-            self._apply_chain(x_tracks)
+            if self.reference:
+                self._apply_chain_reference(x_tracks)
+            else:
+                self._apply_chain(x_tracks)
         else:
-            self._apply_tweezers(x_tracks, y_tracks if y_tracks is not None else np.zeros((0, 4), np.float32))
+            yt = y_tracks if y_tracks is not None else _NO_TRACKS
+            if self.reference:
+                self._apply_tweezers_reference(x_tracks, yt)
+            else:
+                self._apply_tweezers(x_tracks, yt)
 
     def _apply_chain(self, tracks: np.ndarray) -> None:
+        """The chain conveyor as one kernel call (``_chain_slot``; reference: ``_apply_chain_reference``)."""
+        atoms = self._static[0]
+        if not atoms.any():
+            return
+        tracks = np.ascontiguousarray(tracks, dtype=np.float32)
+        draw = not self.lossless and self.survival_step < 1.0
+        u = self._uniforms
+        if draw and u.buf.size - u.pos < self.nx:
+            u.ensure(self.nx)
+        pos, steps, lost_step, lost_collision, lost_dropped, lost_released = _chain_slot(
+            tracks, atoms, self._chain_scratch, u.buf, u.pos, draw, self.survival_step
+        )
+        u.pos = pos
+        c = self.counters
+        c.steps += steps
+        c.lost_step += lost_step
+        c.lost_collision += lost_collision
+        c.lost_dropped += lost_dropped
+        c.lost_released += lost_released
+
+    def _apply_chain_reference(self, tracks: np.ndarray) -> None:
         atoms = self._static[0]
         if not atoms.any():
             return
@@ -195,6 +301,32 @@ class World:
         atoms[:] = new == 1
 
     def _apply_tweezers(self, xt: np.ndarray, yt: np.ndarray) -> None:
+        """The product-set tweezers as one kernel call (``_tweezer_slot``; reference: ``_apply_tweezers_reference``)."""
+        xt = np.ascontiguousarray(xt, dtype=np.float32)
+        yt = np.ascontiguousarray(yt, dtype=np.float32)
+        n_tweezers = xt.shape[0] * yt.shape[0]
+        if self._flags.shape[0] < n_tweezers:
+            self._flags = np.zeros((max(n_tweezers, 4 * self.nx * self.ny), 6), dtype=np.bool_)
+        draw_transfer = not self.lossless and self.survival_transfer < 1.0
+        draw_step = not self.lossless and self.survival_step < 1.0
+        u = self._uniforms
+        need = 3 * n_tweezers  # at most one extraction, one step and one implant per tweezer
+        if (draw_transfer or draw_step) and u.buf.size - u.pos < need:
+            u.ensure(need)
+        pos, transfers, steps, lost_transfer, lost_step, lost_collision, lost_dropped = _tweezer_slot(
+            xt, yt, self._static, self._held, self._covered, self._flags, u.buf, u.pos,
+            draw_transfer, self.survival_transfer, draw_step, self.survival_step,
+        )  # fmt: skip
+        u.pos = pos
+        c = self.counters
+        c.transfers += transfers
+        c.steps += steps
+        c.lost_transfer += lost_transfer
+        c.lost_step += lost_step
+        c.lost_collision += lost_collision
+        c.lost_dropped += lost_dropped
+
+    def _apply_tweezers_reference(self, xt: np.ndarray, yt: np.ndarray) -> None:
         c = self.counters
         if xt.shape[0] == 0 or yt.shape[0] == 0:
             lost = int(self._held.sum())
@@ -260,3 +392,213 @@ class World:
             if t0_s is not None:
                 self.elapse_to(t0_s + i * slot_s)
             self.apply_slot(*decoded.slot(i))
+
+
+_NO_TRACKS = np.zeros((0, 4), dtype=np.float32)
+
+
+# --- kernels ---------------------------------------------------------------------------------------------
+# Each one replays its ``World._*_reference`` method step for step: the same conditions evaluated on the same
+# state (all of a stage's reads before its writes, as the vectorised code does), and the same uniforms read
+# from ``u`` in the same order (the order of ``np.flatnonzero`` over the same masks).
+
+
+@njit(cache=True, nogil=True)
+def _vacuum(static: np.ndarray, held: np.ndarray, u: np.ndarray, pos: int, p_keep: float) -> tuple[int, int]:
+    """Vacuum loss: one uniform per atom, static traps first then tweezers, row-major. Returns (pos, lost)."""
+    lost = 0
+    for grid in (static, held):
+        flat = grid.reshape(grid.size)
+        for i in range(flat.size):
+            if flat[i]:
+                if u[pos] >= p_keep:
+                    flat[i] = False
+                    lost += 1
+                pos += 1
+    return pos, lost
+
+
+@njit(cache=True, nogil=True)
+def _tweezer_slot(
+    xt: np.ndarray,
+    yt: np.ndarray,
+    static: np.ndarray,
+    held: np.ndarray,
+    covered: np.ndarray,
+    flags: np.ndarray,
+    u: np.ndarray,
+    pos: int,
+    draw_transfer: bool,
+    p_transfer: float,
+    draw_step: bool,
+    p_step: float,
+) -> tuple[int, int, int, int, int, int, int]:
+    """One slm slot (tweezer t = y track i x x track j, t = i * mx + j, as ``ravel`` orders the product set).
+
+    Returns ``(pos, transfers, steps, lost_transfer, lost_step, lost_collision, lost_dropped)``.
+    ``flags[t]`` columns: on at start, on at end, loaded, extracted, implant clashes, implanted.
+    """
+    transfers = steps = lost_transfer = lost_step = lost_collision = lost_dropped = 0
+    my = yt.shape[0]
+    mx = xt.shape[0]
+    if my == 0 or mx == 0:
+        for r in range(held.shape[0]):
+            for c in range(held.shape[1]):
+                if held[r, c]:
+                    lost_dropped += 1
+                    held[r, c] = False
+        return pos, transfers, steps, lost_transfer, lost_step, lost_collision, lost_dropped
+    n = my * mx
+    full = np.float32(0.5)
+    covered[:, :] = False
+    for i in range(my):
+        r0 = int(yt[i, 0])
+        for j in range(mx):
+            c0 = int(xt[j, 0])
+            t = i * mx + j
+            # depth = amp_y * amp_x in float32, as np.multiply.outer of the float32 tracks computes it
+            on0 = np.float32(yt[i, 2] * xt[j, 2]) >= full
+            flags[t, 0] = on0
+            flags[t, 1] = np.float32(yt[i, 3] * xt[j, 3]) >= full
+            if on0:
+                covered[r0, c0] = True
+    for r in range(held.shape[0]):
+        for c in range(held.shape[1]):
+            if held[r, c] and not covered[r, c]:
+                lost_dropped += 1
+    # loaded (held before) and extraction candidates read the state before anything is written
+    n_ext = 0
+    for i in range(my):
+        r0 = int(yt[i, 0])
+        for j in range(mx):
+            c0 = int(xt[j, 0])
+            t = i * mx + j
+            flags[t, 2] = flags[t, 0] and held[r0, c0]
+            ext = (not flags[t, 0]) and flags[t, 1] and static[r0, c0]
+            flags[t, 3] = ext
+            if ext:
+                n_ext += 1
+    held[:, :] = False
+
+    # extraction: depth rises over a static atom (taken from the start site)
+    if n_ext:
+        transfers += n_ext
+        for t in range(n):
+            if flags[t, 3]:
+                static[int(yt[t // mx, 0]), int(xt[t % mx, 0])] = False
+        for t in range(n):
+            if flags[t, 3]:
+                ok = True
+                if draw_transfer:
+                    ok = u[pos] < p_transfer
+                    pos += 1
+                if ok:
+                    flags[t, 2] = True
+                else:
+                    lost_transfer += 1
+
+    # transport: one step per loaded tweezer that moves
+    for t in range(n):
+        i = t // mx
+        j = t % mx
+        moving = flags[t, 2] and (int(yt[i, 0]) != int(yt[i, 1]) or int(xt[j, 0]) != int(xt[j, 1]))
+        if moving:
+            steps += 1
+            ok = True
+            if draw_step:
+                ok = u[pos] < p_step
+                pos += 1
+            if not ok:
+                lost_step += 1
+                flags[t, 2] = False
+
+    # still loaded at the end: stays held, or is implanted where the depth falls
+    n_imp = 0
+    for t in range(n):
+        flags[t, 5] = False
+        if flags[t, 2]:
+            r1 = int(yt[t // mx, 1])
+            c1 = int(xt[t % mx, 1])
+            if flags[t, 1]:
+                held[r1, c1] = True
+            else:
+                transfers += 1
+                ok = True
+                if draw_transfer:
+                    ok = u[pos] < p_transfer
+                    pos += 1
+                if ok:
+                    flags[t, 5] = True
+                    n_imp += 1
+                else:
+                    lost_transfer += 1
+    if n_imp:
+        # every implant sees the static traps as they were before any implant of this slot
+        for t in range(n):
+            flags[t, 4] = flags[t, 5] and static[int(yt[t // mx, 1]), int(xt[t % mx, 1])]
+        for t in range(n):
+            if flags[t, 4]:
+                lost_collision += 2
+                static[int(yt[t // mx, 1]), int(xt[t % mx, 1])] = False
+        for t in range(n):
+            if flags[t, 5] and not flags[t, 4]:
+                static[int(yt[t // mx, 1]), int(xt[t % mx, 1])] = True
+    return pos, transfers, steps, lost_transfer, lost_step, lost_collision, lost_dropped
+
+
+@njit(cache=True, nogil=True)
+def _chain_slot(
+    tracks: np.ndarray, atoms: np.ndarray, scratch: np.ndarray, u: np.ndarray, pos: int, draw: bool, p_step: float
+) -> tuple[int, int, int, int, int, int]:
+    """One aod-chain slot. Returns ``(pos, steps, lost_step, lost_collision, lost_dropped, lost_released)``."""
+    nx = atoms.size
+    trap_of = scratch[0]  # track holding site k at the start (the last such track, as a fancy assignment)
+    new = scratch[1]  # atoms arriving at each site
+    trap_of[:] = -1
+    new[:] = 0
+    full = np.float32(0.5)
+    for t in range(tracks.shape[0]):
+        if tracks[t, 2] >= full:
+            trap_of[int(tracks[t, 0])] = t
+    steps = lost_step = lost_collision = lost_dropped = lost_released = 0
+    for k in range(nx):
+        if not atoms[k]:
+            continue
+        t = trap_of[k]
+        if t < 0:
+            lost_dropped += 1
+            continue
+        if not tracks[t, 3] >= full:
+            lost_released += 1
+            continue
+        dst = int(tracks[t, 1])
+        if dst != k:
+            steps += 1
+            if draw:
+                ok = u[pos] < p_step
+                pos += 1
+                if not ok:
+                    lost_step += 1
+                    continue
+        new[dst] += 1
+    for k in range(nx):
+        if new[k] > 1:
+            lost_collision += new[k]
+        atoms[k] = new[k] == 1
+    return pos, steps, lost_step, lost_collision, lost_dropped, lost_released
+
+
+def _warm_up() -> None:
+    """Compile (or load from the cache) every kernel now, not during the first shot; no state is touched."""
+    if _warm_up.done:  # type: ignore[attr-defined]
+        return
+    grid = np.zeros((1, 1), dtype=bool)
+    u = np.zeros(4)
+    one = np.array([[0, 0, 1, 1]], dtype=np.float32)
+    _vacuum(grid, grid.copy(), u, 0, 1.0)
+    _tweezer_slot(one, one, grid, grid.copy(), grid.copy(), np.zeros((1, 6), np.bool_), u, 0, False, 1.0, False, 1.0)
+    _chain_slot(one, np.zeros(1, dtype=bool), np.zeros((2, 1), np.int64), u, 0, False, 1.0)
+    _warm_up.done = True  # type: ignore[attr-defined]
+
+
+_warm_up.done = False  # type: ignore[attr-defined]

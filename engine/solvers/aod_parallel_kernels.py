@@ -633,25 +633,6 @@ def _col_update(
     b = b if b > 0 else 0
     st[c, _T] = t
     st[c, _B] = b
-    # weights: a run that helps a column counts the column's need on that side (the columns with the most
-    # left to do are the critical path)
-    wtop = t
-    wbot = b
-    st[c, _WTOP] = wtop
-    st[c, _WBOT] = wbot
-    cw = c >> 6
-    cb = np.uint64(1) << np.uint64(c & 63)
-    dt = wtop ^ old_t
-    db = wbot ^ old_b
-    q = 0
-    while dt or db:
-        if dt & 1:
-            ptop[q, cw] ^= cb
-        if db & 1:
-            pbot[q, cw] ^= cb
-        dt >>= 1
-        db >>= 1
-        q += 1
     wt = pos[k]
     wb = pos[k + h_rows - 1]
     # D_i = r0 + i - pos[k + i] does not increase with i: binary searches for the first D <= 0 (LT) and
@@ -676,38 +657,81 @@ def _col_update(
     lb = pos[k + lo - 1] if lo > 0 else -1
     top_hi = min(nr - 1, lt) + 1
     bot_lo = max(lb, 0)
-    for w in range(nwr):
-        o = ob[c, w]
-        below = ob[c, 0] >> np.uint64(63) if w == 1 else np.uint64(0)  # bit 63 of the previous word
-        above = ob[c, 1] << np.uint64(63) if w == 0 else np.uint64(0)  # bit 0 of the next word
-        both_t = ((o << np.uint64(1)) | below) & o  # h with atoms at h - 1 and h
-        both_b = ((o >> np.uint64(1)) | above) & o  # h with atoms at h and h + 1
-        n_vt = ~both_t & _range_word(1, top_hi, w)
-        n_ut = n_vt & _range_word(wt + 1, nr, w) if t > 0 else np.uint64(0)
-        n_vb = ~both_b & _range_word(bot_lo, nr - 1, w)
-        n_ub = n_vb & _range_word(0, wb, w) if b > 0 else np.uint64(0)
-        _flip_bits(n_vt ^ cm[c, w], w, vt, c)
-        _flip_bits(n_vb ^ cm[c, 4 + w], w, vb, c)
-        o_ut = cm[c, 2 + w]
-        o_ub = cm[c, 6 + w]
-        _flip_bits(n_ut ^ o_ut, w, ut, c)
-        _flip_bits(n_ub ^ o_ub, w, ub, c)
-        if wtop != old_t:
-            _add_bits(o_ut, w, sct, -old_t)
-            _add_bits(n_ut, w, sct, wtop)
-        else:
-            _add_bits(o_ut & ~n_ut, w, sct, -wtop)
-            _add_bits(n_ut & ~o_ut, w, sct, wtop)
-        if wbot != old_b:
-            _add_bits(o_ub, w, scb, -old_b)
-            _add_bits(n_ub, w, scb, wbot)
-        else:
-            _add_bits(o_ub & ~n_ub, w, scb, -wbot)
-            _add_bits(n_ub & ~o_ub, w, scb, wbot)
-        cm[c, w] = n_vt
-        cm[c, 2 + w] = n_ut
-        cm[c, 4 + w] = n_vb
-        cm[c, 6 + w] = n_ub
+    # the column's new bits over barriers, word 0 and (rows > 64) word 1
+    vt0, ut0, vb0, ub0 = _col_bits(ob, c, 0, nr, top_hi, bot_lo, wt, wb, t, b)
+    vt1 = ut1 = vb1 = ub1 = np.uint64(0)
+    if nwr > 1:
+        vt1, ut1, vb1, ub1 = _col_bits(ob, c, 1, nr, top_hi, bot_lo, wt, wb, t, b)
+    # weights: a run that helps a column counts the column's need on that side (the columns with the most
+    # left to do are the critical path)
+    wtop = t
+    wbot = b
+    st[c, _WTOP] = wtop
+    st[c, _WBOT] = wbot
+    cw = c >> 6
+    cb = np.uint64(1) << np.uint64(c & 63)
+    dt = wtop ^ old_t
+    db = wbot ^ old_b
+    q = 0
+    while dt or db:
+        if dt & 1:
+            ptop[q, cw] ^= cb
+        if db & 1:
+            pbot[q, cw] ^= cb
+        dt >>= 1
+        db >>= 1
+        q += 1
+    _col_apply(c, 0, vt0, ut0, vb0, ub0, wtop, wbot, old_t, old_b, cm, vt, ut, vb, ub, sct, scb)
+    if nwr > 1:
+        _col_apply(c, 1, vt1, ut1, vb1, ub1, wtop, wbot, old_t, old_b, cm, vt, ut, vb, ub, sct, scb)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _col_bits(
+    ob: np.ndarray, c: int, w: int, nr: int, top_hi: int, bot_lo: int, wt: int, wb: int, t: int, b: int
+) -> tuple[np.uint64, np.uint64, np.uint64, np.uint64]:
+    """Word ``w`` of column ``c``'s legal+harmless / useful bits for top and bottom barriers."""
+    o = ob[c, w]
+    below = ob[c, 0] >> np.uint64(63) if w == 1 else np.uint64(0)  # bit 63 of the previous word
+    above = ob[c, 1] << np.uint64(63) if w == 0 else np.uint64(0)  # bit 0 of the next word
+    both_t = ((o << np.uint64(1)) | below) & o  # h with atoms at h - 1 and h
+    both_b = ((o >> np.uint64(1)) | above) & o  # h with atoms at h and h + 1
+    n_vt = ~both_t & _range_word(1, top_hi, w)
+    n_ut = n_vt & _range_word(wt + 1, nr, w) if t > 0 else np.uint64(0)
+    n_vb = ~both_b & _range_word(bot_lo, nr - 1, w)
+    n_ub = n_vb & _range_word(0, wb, w) if b > 0 else np.uint64(0)
+    return n_vt, n_ut, n_vb, n_ub
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _col_apply(
+    c: int, w: int, n_vt: np.uint64, n_ut: np.uint64, n_vb: np.uint64, n_ub: np.uint64, wtop: int, wbot: int,
+    old_t: int, old_b: int, cm: np.ndarray, vt: np.ndarray, ut: np.ndarray, vb: np.ndarray, ub: np.ndarray,
+    sct: np.ndarray, scb: np.ndarray,
+) -> None:
+    """Bring word ``w`` of column ``c``'s entries in the per-barrier sets and scores up to date."""
+    _flip_bits(n_vt ^ cm[c, w], w, vt, c)
+    _flip_bits(n_vb ^ cm[c, 4 + w], w, vb, c)
+    o_ut = cm[c, 2 + w]
+    o_ub = cm[c, 6 + w]
+    _flip_bits(n_ut ^ o_ut, w, ut, c)
+    _flip_bits(n_ub ^ o_ub, w, ub, c)
+    if wtop != old_t:
+        _add_bits(o_ut, w, sct, -old_t)
+        _add_bits(n_ut, w, sct, wtop)
+    else:
+        _add_bits(o_ut & ~n_ut, w, sct, -wtop)
+        _add_bits(n_ut & ~o_ut, w, sct, wtop)
+    if wbot != old_b:
+        _add_bits(o_ub, w, scb, -old_b)
+        _add_bits(n_ub, w, scb, wbot)
+    else:
+        _add_bits(o_ub & ~n_ub, w, scb, -wbot)
+        _add_bits(n_ub & ~o_ub, w, scb, wbot)
+    cm[c, w] = n_vt
+    cm[c, 2 + w] = n_ut
+    cm[c, 4 + w] = n_vb
+    cm[c, 6 + w] = n_ub
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -60,8 +60,8 @@ class ToneAxisConfig(_Model):
     so that static tones are phase-continuous from one slot to the next.
     """
 
-    start_hz: PositiveFloat = 80e6
-    spacing_hz: PositiveFloat = 1e6
+    start_hz: Annotated[float, Field(gt=0, le=10e9)] = 80e6
+    spacing_hz: Annotated[float, Field(gt=0, le=1e9)] = 1e6
     amplitude: Annotated[float, Field(gt=0, le=1)] = 0.015
     phases: Literal["schroeder", "zero"] = "schroeder"
     csv: str | None = Field(default=None, description="path to an alpha,nu,phi CSV; overrides the comb")
@@ -106,19 +106,19 @@ class CameraConfig(_Model):
     origin_px: tuple[float, float] = Field(default=(8.0, 8.0), description="(x, y) pixel of trap (row 0, col 0)")
     col_step_px: tuple[float, float] = Field(default=(16.0, 0.0), description="(x, y) pixel step from column c to c+1")
     row_step_px: tuple[float, float] = Field(default=(0.0, 16.0), description="(x, y) pixel step from row r to r+1")
-    psf_sigma_px: PositiveFloat = 1.2
-    exposure_s: PositiveFloat = 0.020
+    psf_sigma_px: Annotated[float, Field(gt=0, le=100)] = 1.2
+    exposure_s: Annotated[float, Field(gt=0, le=60)] = 0.020
     em_gain: Annotated[float, Field(ge=1, le=1000)] = 300.0
-    photons_per_atom: PositiveFloat = 400.0
+    photons_per_atom: Annotated[float, Field(gt=0, le=1e7)] = 400.0
     background_photons_per_px: Annotated[float, Field(ge=0)] = 0.5
     quantum_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
     read_noise_e: Annotated[float, Field(ge=0)] = 60.0
     bias_counts: Annotated[float, Field(ge=0, le=65535)] = 500.0
-    electrons_per_count: PositiveFloat = 20.0
-    vertical_shift_s: PositiveFloat = 4.33e-6
-    horizontal_rate_hz: PositiveFloat = 30e6
-    transfer_bytes_per_s: PositiveFloat = 1.431e9
-    timeout_s: PositiveFloat = 0.6
+    electrons_per_count: Annotated[float, Field(gt=0, le=1e6)] = 20.0
+    vertical_shift_s: Annotated[float, Field(gt=0, le=1e-3)] = 4.33e-6
+    horizontal_rate_hz: Annotated[float, Field(ge=1e3, le=1e10)] = 30e6
+    transfer_bytes_per_s: Annotated[float, Field(ge=1e3, le=1e12)] = 1.431e9
+    timeout_s: Annotated[float, Field(gt=0, le=600)] = 0.6
 
     def trap_pixel_xy(self, row: int, col: int) -> tuple[float, float]:
         x = self.origin_px[0] + col * self.col_step_px[0] + row * self.row_step_px[0]
@@ -173,8 +173,8 @@ class SolverConfig(_Model):
 class WaveformConfig(_Model):
     """Module IV: waveform slots and the transition shape used for every move."""
 
-    sample_rate_hz: PositiveFloat = 624e6
-    slot_duration_s: PositiveFloat = 10e-6
+    sample_rate_hz: Annotated[float, Field(ge=1e3, le=10e9)] = 624e6
+    slot_duration_s: Annotated[float, Field(ge=1e-7, le=1e-2)] = 10e-6
     shape: Literal["min-jerk", "tanh", "erf"] = "min-jerk"
     shape_sharpness: Annotated[float, Field(gt=0, le=50)] = Field(
         default=6.0, description="tanh/erf steepness in units of 1/slot_duration_s (v*T); ignored by min-jerk"
@@ -194,7 +194,7 @@ class AWGConfig(_Model):
     n_segments: Annotated[int, Field(ge=8, le=4096)] = 256
     n_steps: Annotated[int, Field(ge=8, le=4096)] = 4096
     waveforms_per_segment: Annotated[int, Field(ge=1, le=1024)] = 32
-    upload_bytes_per_s: PositiveFloat = 1.58e9
+    upload_bytes_per_s: Annotated[float, Field(ge=1e3, le=1e12)] = 1.58e9
     upload_jitter_s: Annotated[float, Field(ge=0)] = 5e-6
     step_write_s: Annotated[float, Field(ge=0)] = 4e-6
     max_memory_bytes: Annotated[int, Field(ge=1)] = 2**32
@@ -234,7 +234,7 @@ class SimConfig(_Model):
     loading_probability: Fraction = 0.6
     survival_transfer: Fraction = 0.985
     survival_step: Fraction = 0.985
-    vacuum_lifetime_s: PositiveFloat = 60.0
+    vacuum_lifetime_s: Annotated[float, Field(gt=0, le=1e9)] = 60.0
     lossless: bool = False
     time: Literal["simulated", "realtime"] = "simulated"
     faults: FaultConfig = FaultConfig()
@@ -397,6 +397,11 @@ class SystemConfig(_Model):
     @model_validator(mode="after")
     def _consistent(self) -> SystemConfig:
         wf = self.waveforms
+        if wf.sample_rate_hz * wf.slot_duration_s > 1e6:
+            raise ValueError(
+                f"waveforms: a slot of {wf.slot_duration_s:g} s at {wf.sample_rate_hz:g} S/s is "
+                f"{wf.sample_rate_hz * wf.slot_duration_s:.3g} samples; at most 1e6 per slot"
+            )
         if abs(wf.sample_rate_hz * wf.slot_duration_s - wf.slot_samples) > 1e-6:
             raise ValueError(
                 "waveforms: sample_rate_hz * slot_duration_s must be a whole number of samples "

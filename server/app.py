@@ -338,17 +338,21 @@ def create_app(
         return shot_out(record)
 
     @app.post(
-        "/api/shots/labscript",
+        "/api/labscript",
         response_model=ShotOut | None,
         dependencies=auth,
-        responses={**body_errors, 409: {"model": ErrorOut, "description": "the shot file already holds results"}},
+        responses={
+            **body_errors,
+            404: {"model": ErrorOut, "description": "no such shot file"},
+            409: {"model": ErrorOut, "description": "the shot file already holds results"},
+        },
         summary="Run the shot a labscript shot file describes and write its results into that file",
     )
     def post_shot_file(request: ShotFileRequest) -> ShotOut | None:
         try:
             record = service.shot_file(request.path)
         except ShotFileError as err:
-            status = 409 if "already holds" in str(err) else 422
+            status = 409 if "already holds" in str(err) else 404 if "no such shot file" in str(err) else 422
             raise HTTPException(status, detail=str(err)) from None
         except ConfigRejected as err:
             raise rejected(err) from None

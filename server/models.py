@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from engine.records import ShotRecord
 
@@ -34,6 +34,13 @@ __all__ = [
     "shot_out",
     "shot_summary",
 ]
+
+
+def _not_bool(value: Any) -> Any:
+    """A count in a request: 8 and 8.0 (JSON has one number type), never ``true`` or ``"8"``."""
+    if isinstance(value, (bool, str)):
+        raise ValueError(f"expected a number, got {value!r}")
+    return value
 
 
 class _Request(BaseModel):
@@ -113,7 +120,7 @@ class ShotRequest(_Request):
 
 
 class ShotFileRequest(_Request):
-    """``POST /api/shots/labscript`` body: a labscript shot file on this machine."""
+    """``POST /api/labscript`` body: a labscript shot file on this machine."""
 
     path: str = Field(
         min_length=1,
@@ -132,6 +139,8 @@ class ArmRequest(_Request):
     shots: int | None = Field(
         default=None, ge=1, le=1_000_000, description="disarm after this many triggered shots; null: stay armed until stop"
     )
+
+    _shots_is_a_number = field_validator("shots", mode="before")(_not_bool)
 
 
 class ArmOut(BaseModel):
@@ -223,6 +232,8 @@ class CalibrationRequest(_Request):
         le=500,
         description="fresh frames to acquire (in the simulated lab each one is a newly loaded array)",
     )
+
+    _images_is_a_number = field_validator("images", mode="before")(_not_bool)
 
 
 class _CalibrationBase(BaseModel):

@@ -110,6 +110,7 @@ def main(args: argparse.Namespace) -> int:
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         sock.bind((args.host, args.port))
+        sock.listen(2048)  # connections made once the URLs are printed wait in the backlog until uvicorn accepts
     except OSError as err:
         print(f"llrs serve: cannot listen on {args.host}:{args.port}: {err.strerror} (try --port)", file=sys.stderr)
         return 2

@@ -132,7 +132,7 @@ def test_labscript_shot_file_over_rest(api, tmp_path: Path) -> None:
         g = f.create_group("globals")
         g.attrs["llrs_max_cycles"] = 3
         g.attrs["llrs_loading_probability"] = 0.8
-    r = client.post("/api/shots/labscript", json={"path": str(shot_file)})
+    r = client.post("/api/labscript", json={"path": str(shot_file)})
     assert r.status_code == 200, r.text
     shot = r.json()
     with h5py.File(shot_file, "r") as f:
@@ -140,8 +140,8 @@ def test_labscript_shot_file_over_rest(api, tmp_path: Path) -> None:
         assert results.attrs["shot_id"] == shot["shot_id"]
         outcome = results.attrs["outcome"]
         assert (outcome.decode() if isinstance(outcome, bytes) else outcome) == shot["outcome"]
-    again = client.post("/api/shots/labscript", json={"path": str(shot_file)})
+    again = client.post("/api/labscript", json={"path": str(shot_file)})
     assert again.status_code == 409 and "already holds" in again.json()["detail"]
-    missing = client.post("/api/shots/labscript", json={"path": str(tmp_path / "nope.h5")})
-    assert missing.status_code == 422 and "no such shot file" in missing.json()["detail"]
+    missing = client.post("/api/labscript", json={"path": str(tmp_path / "nope.h5")})
+    assert missing.status_code == 404 and "no such shot file" in missing.json()["detail"]
     assert client.get("/api/config").json()["loop"]["max_cycles"] == 5  # the shot's globals were for that shot only

@@ -421,6 +421,7 @@ class SimCamera:
         self._system = SystemConfig.model_validate(data)
         cam = self._system.camera
         self._frame_shape = frame_shape(cam)
+        self._frame = np.zeros(self._frame_shape, dtype=np.uint16)  # rendered at trigger(), handed out at read()
         self._readout = readout_time(cam)
         self._stamp_idx, self._stamp_frac = _stamps(self._system)
         self._mean_e = np.empty(self._frame_shape, dtype=np.float64)
@@ -440,6 +441,10 @@ class SimCamera:
         self._occupancy[...] = occupancy
         self._t_exposure_start_s = self._clock.now_s()
         self._frame_index += 1
+        # Render now, not at read(): on hardware the host is idle during the exposure and the frame arrives
+        # by DMA, so the simulator's heavy rendering must not run between the frame and the engine's use of it.
+        with self._clock.paused():
+            self._render(self._frame)
 
     def read(self, out: np.ndarray, *, timeout_s: float) -> FrameInfo:
         """Wait (in simulated time) for the triggered frame and render it into ``out`` (``uint16[h, w]``)."""
@@ -460,8 +465,8 @@ class SimCamera:
                 f"camera: no frame within {timeout_s * 1e3:.1f} ms of waiting (frame {self._frame_index} needs "
                 f"{self._readout.total_s * 1e3:.2f} ms from trigger); check the trigger, exposure and timeout"
             )
-        with self._clock.paused():  # rendering is the simulator's work; the frame's time is the model's
-            self._render(out)
+        with self._clock.paused():  # the transfer is in the readout model; the copy is the simulator's work
+            out[...] = self._frame
         self._clock.advance_to(t_ready_s)
         if fault == "corrupt":
             tear_row = int(self._rng.integers(0, self._frame_shape[0]))

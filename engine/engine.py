@@ -24,7 +24,7 @@ from engine.operations import Plan
 from engine.records import CycleRecord, Outcome, ShotRecord
 from engine.solvers import Solver, UnsolvableError
 from engine.streaming import Streamer
-from engine.targets import build_target
+from engine.targets import build_target, target_filled
 from engine.timing import StageTimer
 from engine.waveforms import WaveformBank
 
@@ -129,6 +129,7 @@ class Engine:
             timer=StageTimer(dev.clock.now_s, config.loop.max_cycles + 1),
         )
         pipeline.solver.check_target(target)
+        target_filled(pipeline.occupancy, target)  # compile (or load) before the engine reports ready
         if self.lab is not None and config.sim.faults.solver == "exception":
             pipeline.solver = _FailingSolver(pipeline.solver)
         try:
@@ -244,7 +245,7 @@ class Engine:
         p.detector.classify(p.occupancy)
         timer.lap("II.threshold")
         p.history[cycle] = p.occupancy
-        if np.all(p.occupancy[p.target]):
+        if target_filled(p.occupancy, p.target):
             return Outcome.SUCCESS
         if cycle == p.config.loop.max_cycles:
             return Outcome.MAX_CYCLES

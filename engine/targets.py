@@ -5,11 +5,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numba import njit
 
 if TYPE_CHECKING:
     from engine.config import TargetConfig
 
-__all__ = ["build_target", "centre_target", "rectangle_target"]
+__all__ = ["build_target", "centre_target", "rectangle_target", "target_filled"]
 
 
 def centre_target(*, nx: int, ny: int, count: int) -> np.ndarray:
@@ -77,3 +78,14 @@ def build_target(cfg: TargetConfig, *, nx: int, ny: int) -> np.ndarray:
     if not target.any():
         raise ValueError("the target selects no trap")
     return target
+
+
+@njit(cache=True, nogil=True)
+def target_filled(occupancy: np.ndarray, target: np.ndarray) -> bool:
+    """True when every target trap is occupied; a kernel, so the check in every cycle allocates nothing."""
+    occ = occupancy.ravel()
+    tgt = target.ravel()
+    for i in range(tgt.size):
+        if tgt[i] and not occ[i]:
+            return False
+    return True

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -34,6 +35,7 @@ __all__ = [
     "TargetConfig",
     "ToneAxisConfig",
     "WaveformConfig",
+    "deep_merge",
     "load_config",
     "save_config",
 ]
@@ -456,6 +458,20 @@ class SystemConfig(_Model):
         """A short stable hash of the configuration, stored with every shot."""
         blob = json.dumps(self.model_dump(mode="json"), sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def deep_merge(base: dict[str, Any], patch: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``patch`` merged in: nested mappings merge key by key, anything else replaces.
+
+    Unlike RFC 7396, ``null`` is a value, not a deletion: ``imaging.threshold: null`` is a real setting.
+    """
+    merged = dict(base)
+    for key, value in patch.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
 
 
 def _format_validation_error(err: ValidationError, source: str) -> str:

@@ -30,7 +30,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from engine.config import ConfigError, SystemConfig, config_from_dict
+from engine.config import ConfigError, SystemConfig, config_from_dict, deep_merge
 from engine.records import ShotRecord
 from engine.timing import STAGES
 
@@ -116,7 +116,7 @@ def shot_overrides(globals_: Mapping[str, Any]) -> dict[str, Any]:
             raise ShotFileError(f"global llrs_config is not valid JSON: {err}") from None
         if not isinstance(extra, dict):
             raise ShotFileError(f"global llrs_config must be a JSON object, not {type(extra).__name__}")
-        patch = _deep_merge(patch, extra)
+        patch = deep_merge(patch, extra)
     for name, where in GLOBALS.items():
         if name in globals_:
             node = patch
@@ -124,16 +124,6 @@ def shot_overrides(globals_: Mapping[str, Any]) -> dict[str, Any]:
                 node = node.setdefault(key, {})
             node[where[-1]] = globals_[name]
     return patch
-
-
-def _deep_merge(base: dict[str, Any], patch: Mapping[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for key, value in patch.items():
-        if isinstance(value, Mapping) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value)
-        else:
-            out[key] = value
-    return out
 
 
 def shot_config(base: SystemConfig | None, globals_: Mapping[str, Any], *, source: str = "shot file") -> SystemConfig | None:
@@ -144,7 +134,7 @@ def shot_config(base: SystemConfig | None, globals_: Mapping[str, Any], *, sourc
         return None
     base = base if base is not None else SystemConfig()
     try:
-        return config_from_dict(_deep_merge(base.model_dump(mode="json"), patch), source=f"{source} (llrs_ globals)")
+        return config_from_dict(deep_merge(base.model_dump(mode="json"), patch), source=f"{source} (llrs_ globals)")
     except ConfigError as err:
         msg = str(err)
         for name, where in GLOBALS.items():  # point each bad field back at the global that set it

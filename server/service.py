@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from pydantic import ValidationError
 
-from engine.config import SystemConfig
+from engine.config import SystemConfig, deep_merge
 from engine.records import Outcome, ShotRecord
 from server.calibration import psf_calibration, threshold_calibration
 from server.models import DevicesOut, StatusOut, shot_summary
@@ -61,20 +61,6 @@ class NotArmed(RuntimeError):
 
 class CalibrationConflict(RuntimeError):
     """A calibration cannot be applied: the configuration changed since its frames were taken."""
-
-
-def deep_merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
-    """``base`` with ``patch`` merged in: nested mappings merge key by key, anything else replaces.
-
-    Unlike RFC 7396, ``null`` is a value, not a deletion: ``imaging.threshold: null`` is a real setting.
-    """
-    merged = dict(base)
-    for key, value in patch.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key] = deep_merge(merged[key], value)
-        else:
-            merged[key] = value
-    return merged
 
 
 def _validate(data: Any) -> SystemConfig:

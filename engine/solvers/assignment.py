@@ -11,10 +11,12 @@ design notes, section 2.3):
    the place just vacated, and so on back to the source. Every hop then runs over empty traps only, the
    total displacement equals the path length, and the set of occupied traps changes exactly by
    source -> target, so atoms already in place stay in place.
-3. **Ordering and batching.** Pairs run in order of path length; each hop is one batch of one tweezer
-   (a 1 x 1 product set): EXTRACT, one SHIFT per site, IMPLANT. One tweezer per batch makes any mask legal
-   under the crossed-AOD model; it costs slots (2 + hop length each), which ``aod-parallel`` and ``red-rec``
-   trade for generality on band and rectangle targets.
+3. **Ordering and batching.** Pairs run in order of path length. The hops of a chain along one row (or
+   column) run together as a relay (one row tone, each atom to the next one's trap); relays and single
+   hops whose atoms sit in distinct rows and columns share one product set of tweezers, each atom on its
+   own path (``assignment_batching``: tone order, bystanders, free traps and overtaking are checked), so a
+   batch moves many atoms. Any mask is legal this way; band and rectangle targets still take fewer slots
+   with ``aod-parallel`` or ``red-rec-wide``, whose batches move whole columns.
 
 Planning is Python + scipy over small arrays: a few milliseconds for a 32 x 32 array (tested under 50 ms).
 """
@@ -94,6 +96,7 @@ class AssignmentPlanner:
 
             raise UnsolvableError(f"{int(occupancy.sum())} atoms cannot fill {int(target.sum())} target traps")
         self._hops = []
+        self._groups = [0]
         if len(holes):
             cost = np.abs(free[:, None, 0] - holes[None, :, 0]) + np.abs(free[:, None, 1] - holes[None, :, 1])
             rows, cols = linear_sum_assignment(cost.T)  # holes x free atoms: every hole gets an atom
@@ -101,7 +104,9 @@ class AssignmentPlanner:
             pairs.sort(key=lambda st: abs(st[0][0] - st[1][0]) + abs(st[0][1] - st[1][1]))
             for source, dest in pairs:
                 path = self._route(occ, source, dest)
-                self._hops.extend(_chain_hops(occ, path))
+                for group in _relay_groups(_chain_hops(occ, path)):
+                    self._hops.extend(group)
+                    self._groups.append(len(self._hops))
                 occ[source] = False
                 occ[dest] = True
         self._solved = True
@@ -141,10 +146,17 @@ class AssignmentPlanner:
         hop_ptr = np.zeros(n_hops + 1, dtype=np.int64)
         hop_ptr[1:] = np.cumsum([len(h) for h in hops])
         cells = np.array([site for h in hops for site in h], dtype=np.int64).reshape(n_cells, 2)
-        if self._done.size < n_hops:
-            self._done = np.zeros(2 * n_hops, dtype=np.bool_)
+        group_ptr = np.asarray(self._groups, dtype=np.int64)
+        n_groups = group_ptr.size - 1
+        if self._done.size < n_groups:
+            self._done = np.zeros(2 * n_groups, dtype=np.bool_)
+        if self._members.size < n_hops:
+            self._members = np.zeros(n_hops, dtype=np.int64)
+            self._order_r = np.zeros(n_hops, dtype=np.int64)
+            self._order_c = np.zeros(n_hops, dtype=np.int64)
         n_batches = batch_hops(
-            self._occ0, hop_ptr, n_hops, cells, self.window, self.extend, self._occ, self._done, self._blocked, self._src_mark, self._dst_mark, self._members, self._batch_ptr_for(n_hops),
+            self._occ0, hop_ptr, n_hops, cells, group_ptr, n_groups, self.window, self.extend, self._occ,
+            self._done, self._blocked, self._src_mark, self._dst_mark, self._members, self._batch_ptr_for(n_hops),
             self._batch_hop_for(n_hops),
         )  # fmt: skip
         if n_batches < 0:
@@ -176,6 +188,24 @@ class AssignmentPlanner:
         if self._batch_hop.size < n_hops:
             self._batch_hop = np.zeros(2 * n_hops, dtype=np.int64)
         return self._batch_hop
+
+
+def _relay_groups(hops: list[list[tuple[int, int]]]) -> list[list[list[tuple[int, int]]]]:
+    """Consecutive straight hops of a chain along one row (or one column) run together as a relay: every
+    atom moves to where the next one (nearer the target, earlier in the list) starts. A hop that turns the
+    corner runs alone."""
+    groups: list[list[list[tuple[int, int]]]] = []
+    prev_line: tuple[int, int] | None = None
+    for hop in hops:
+        (r0, c0), (r1, c1) = hop[0], hop[-1]
+        straight = len(hop) == abs(r1 - r0) + abs(c1 - c0) + 1 and (r0 == r1 or c0 == c1)
+        line = (0, r0) if straight and r0 == r1 else (1, c0) if straight else None
+        if line is not None and line == prev_line:
+            groups[-1].append(hop)
+        else:
+            groups.append([hop])
+        prev_line = line
+    return groups
 
 
 def _chain_hops(occ: np.ndarray, path: list[tuple[int, int]]) -> list[list[tuple[int, int]]]:

@@ -1,4 +1,4 @@
-"""Parallel batching of single-atom hops (numba): many hops share one product set of tweezers.
+"""Parallel batching of single-atom hops and row/column relays (numba): many share one product set.
 
 Input: hops in a valid *sequential* order (each runs over traps that are empty when its turn comes, as the
 assignment planner's chains do), each a path of one-site steps from its source to its destination.
@@ -33,113 +33,121 @@ __all__ = ["batch_hops", "count_batched_slots"]
 
 
 @njit(cache=True, nogil=True)
-def _tones_keep_order(
-    members: np.ndarray, n_mem: int, k: int, hop_ptr: np.ndarray, cells: np.ndarray, axis: int
-) -> bool:
-    """Do hop ``k``'s tone on ``axis`` (0 rows, 1 columns) and every member's keep a strict order at every slot?"""
-    pk = hop_ptr[k]
-    lk = hop_ptr[k + 1] - pk - 1
-    for i in range(n_mem):
-        j = members[i]
-        pj = hop_ptr[j]
-        lj = hop_ptr[j + 1] - pj - 1
-        sign0 = cells[pk, axis] - cells[pj, axis]
-        if sign0 == 0:
+def _pair_ok(a: int, b: int, hop_ptr: np.ndarray, cells: np.ndarray, occ: np.ndarray) -> bool:
+    """Atoms of hops ``a`` and ``b`` (different groups) can share a product set: distinct rows and columns
+    kept in the same order at every slot, and empty traps at the two crossings of their tones."""
+    pa = hop_ptr[a]
+    la = hop_ptr[a + 1] - pa - 1
+    pb = hop_ptr[b]
+    lb = hop_ptr[b + 1] - pb - 1
+    ra = cells[pa, 0]
+    ca = cells[pa, 1]
+    rb = cells[pb, 0]
+    cb = cells[pb, 1]
+    if ra == rb or ca == cb or occ[ra, cb] or occ[rb, ca]:
+        return False
+    sr = ra > rb
+    sc = ca > cb
+    for t in range(1, max(la, lb) + 1):
+        dr = cells[pa + min(t, la), 0] - cells[pb + min(t, lb), 0]
+        dc = cells[pa + min(t, la), 1] - cells[pb + min(t, lb), 1]
+        if dr == 0 or dc == 0 or (dr > 0) != sr or (dc > 0) != sc:
             return False
-        for t in range(1, max(lk, lj) + 1):
-            a = cells[pk + min(t, lk), axis]
-            b = cells[pj + min(t, lj), axis]
-            d = a - b
-            if d == 0 or (d > 0) != (sign0 > 0):
-                return False
     return True
 
 
 @njit(cache=True, nogil=True)
 def batch_hops(
-    occ0: np.ndarray, hop_ptr: np.ndarray, n_hops: int, cells: np.ndarray, window: int, extend: int,
-    occ: np.ndarray, done: np.ndarray, blocked: np.ndarray, src_mark: np.ndarray, dst_mark: np.ndarray,
-    members: np.ndarray, batch_ptr: np.ndarray, batch_hop: np.ndarray,
+    occ0: np.ndarray, hop_ptr: np.ndarray, n_hops: int, cells: np.ndarray, group_ptr: np.ndarray, n_groups: int,
+    window: int, extend: int, occ: np.ndarray, done: np.ndarray, blocked: np.ndarray, src_mark: np.ndarray,
+    dst_mark: np.ndarray, members: np.ndarray, batch_ptr: np.ndarray, batch_hop: np.ndarray,
 ) -> int:
-    """Group the hops into batches: ``batch_hop[batch_ptr[b]:batch_ptr[b + 1]]`` are batch ``b``'s hops, in
-    the order they were taken. Returns the number of batches (-1 if the hops are not in a valid sequential
-    order). ``cells[hop_ptr[k]:hop_ptr[k + 1]]`` is hop
-    ``k``'s path (row, col) from source to destination; the scratch arrays are ``occ``-shaped."""
-    ny, nx = occ0.shape
+    """Group the hops into batches: ``batch_hop[batch_ptr[b]:batch_ptr[b + 1]]`` are batch ``b``'s hops.
+    Returns the number of batches (-1 if the hops are not in a valid sequential order).
+
+    ``cells[hop_ptr[k]:hop_ptr[k + 1]]`` is hop ``k``'s path (row, col) from source to destination. Hops
+    come in *groups* ``group_ptr[g]:group_ptr[g + 1]`` that always run together: a relay along one row
+    (or column), every atom moving to where the next one starts, the front one first in the list; such a
+    group shares one row (column) tone, so its atoms are exactly its product set. ``members`` holds the
+    hops taken into the current batch; the scratch arrays are ``occ``-shaped."""
     occ[:, :] = occ0
-    for k in range(n_hops):
-        done[k] = False
+    for g in range(n_groups):
+        done[g] = False
     n_batches = 0
     n_taken = 0
     first = 0
     batch_ptr[0] = 0
-    while first < n_hops:
-        while first < n_hops and done[first]:
+    while first < n_groups:
+        while first < n_groups and done[first]:
             first += 1
-        if first >= n_hops:
+        if first >= n_groups:
             break
         blocked[:, :] = False
         n_mem = 0
         l_max = 0
         scanned = 0
-        k = first
-        while k < n_hops and scanned < window:
-            if done[k]:
-                k += 1
+        g = first
+        while g < n_groups and scanned < window:
+            if done[g]:
+                g += 1
                 continue
             scanned += 1
-            p0 = hop_ptr[k]
-            p1 = hop_ptr[k + 1]
-            length = p1 - p0 - 1
-            sr = cells[p0, 0]
-            sc = cells[p0, 1]
-            dr = cells[p1 - 1, 0]
-            dc = cells[p1 - 1, 1]
+            h0 = group_ptr[g]
+            h1 = group_ptr[g + 1]
+            length = 0
+            for k in range(h0, h1):
+                length = max(length, hop_ptr[k + 1] - hop_ptr[k] - 1)
             fits = n_mem == 0 or length <= max(l_max, 1) + extend
-            if fits:
-                # footprint untouched by the earlier hops this batch overtakes
-                for p in range(p0, p1):
+            for k in range(h0, h1):  # footprint untouched by the earlier groups this batch overtakes
+                if not fits:
+                    break
+                for p in range(hop_ptr[k], hop_ptr[k + 1]):
                     if blocked[cells[p, 0], cells[p, 1]]:
                         fits = False
                         break
-            if fits and not occ[sr, sc]:
-                fits = False
-            if fits and n_mem > 0:
-                for i in range(n_mem):
-                    j = members[i]
-                    jr = cells[hop_ptr[j], 0]
-                    jc = cells[hop_ptr[j], 1]
-                    # distinct rows and columns, and no bystander at the crossings
-                    if jr == sr or jc == sc or occ[sr, jc] or occ[jr, sc]:
-                        fits = False
-                        break
-            if fits:
-                for p in range(p0 + 1, p1):
-                    r = cells[p, 0]
-                    c = cells[p, 1]
-                    if occ[r, c] and not src_mark[r, c]:
-                        fits = False
-                        break
-                if fits and dst_mark[dr, dc]:
+            for k in range(h0, h1):
+                if not fits:
+                    break
+                p0 = hop_ptr[k]
+                if not occ[cells[p0, 0], cells[p0, 1]]:
                     fits = False
-            if fits and n_mem > 0:
-                fits = _tones_keep_order(members, n_mem, k, hop_ptr, cells, 0) and _tones_keep_order(
-                    members, n_mem, k, hop_ptr, cells, 1
-                )
+                for i in range(n_mem):
+                    if not fits:
+                        break
+                    fits = _pair_ok(k, members[i], hop_ptr, cells, occ)
             if fits:
-                members[n_mem] = k
-                n_mem += 1
+                for k in range(h0, h1):
+                    src_mark[cells[hop_ptr[k], 0], cells[hop_ptr[k], 1]] = True
+                for k in range(h0, h1):
+                    p1 = hop_ptr[k + 1]
+                    for p in range(hop_ptr[k] + 1, p1):
+                        r = cells[p, 0]
+                        c = cells[p, 1]
+                        if occ[r, c] and not src_mark[r, c]:
+                            fits = False
+                            break
+                    if not fits or dst_mark[cells[p1 - 1, 0], cells[p1 - 1, 1]]:
+                        fits = False
+                        break
+                if not fits:
+                    for k in range(h0, h1):
+                        src_mark[cells[hop_ptr[k], 0], cells[hop_ptr[k], 1]] = False
+            if fits:
+                for k in range(h0, h1):
+                    members[n_mem] = k
+                    n_mem += 1
+                    p1 = hop_ptr[k + 1]
+                    dst_mark[cells[p1 - 1, 0], cells[p1 - 1, 1]] = True
                 if length > l_max:
                     l_max = length
-                src_mark[sr, sc] = True
-                dst_mark[dr, dc] = True
-                done[k] = True
+                done[g] = True
             else:
-                for p in range(p0, p1):
-                    blocked[cells[p, 0], cells[p, 1]] = True
-            k += 1
+                for k in range(h0, h1):
+                    for p in range(hop_ptr[k], hop_ptr[k + 1]):
+                        blocked[cells[p, 0], cells[p, 1]] = True
+            g += 1
         if n_mem == 0:
-            return -1  # the first hop left cannot run: the hops were not in a valid sequential order
+            return -1  # the first group left cannot run: the hops were not in a valid sequential order
         for i in range(n_mem):
             j = members[i]
             p0 = hop_ptr[j]
@@ -229,21 +237,32 @@ def emit_hop_batches(
             at = t - 1 if t > 0 else 0  # cell index at the start of this slot
             if t == l_max + 1:
                 at = l_max
+            # atoms of a relay along a row share its row tone (and along a column its column tone): the
+            # only atoms that start in the same row (column) are such partners
+            ny_t = 0
             for i in range(m):
                 k = order_r[i]
                 p0 = hop_ptr[k]
+                if i > 0 and cells[p0, 0] == cells[hop_ptr[order_r[i - 1]], 0]:
+                    continue
                 ln = hop_ptr[k + 1] - p0 - 1
                 q = min(at, ln)
-                y_site[n, i] = cells[p0 + q, 0]
-                y_delta[n, i] = cells[p0 + q + 1, 0] - cells[p0 + q, 0] if (kind[n] == SHIFT and t <= ln) else 0
+                y_site[n, ny_t] = cells[p0 + q, 0]
+                y_delta[n, ny_t] = cells[p0 + q + 1, 0] - cells[p0 + q, 0] if (kind[n] == SHIFT and t <= ln) else 0
+                ny_t += 1
+            nx_t = 0
+            for i in range(m):
                 k = order_c[i]
                 p0 = hop_ptr[k]
+                if i > 0 and cells[p0, 1] == cells[hop_ptr[order_c[i - 1]], 1]:
+                    continue
                 ln = hop_ptr[k + 1] - p0 - 1
                 q = min(at, ln)
-                x_site[n, i] = cells[p0 + q, 1]
-                x_delta[n, i] = cells[p0 + q + 1, 1] - cells[p0 + q, 1] if (kind[n] == SHIFT and t <= ln) else 0
-            y_used[n] = m
-            x_used[n] = m
+                x_site[n, nx_t] = cells[p0 + q, 1]
+                x_delta[n, nx_t] = cells[p0 + q + 1, 1] - cells[p0 + q, 1] if (kind[n] == SHIFT and t <= ln) else 0
+                nx_t += 1
+            y_used[n] = ny_t
+            x_used[n] = nx_t
             if kind[n] == SHIFT:
                 for i in range(a0, a1):
                     k = batch_hop[i]

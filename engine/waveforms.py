@@ -43,7 +43,20 @@ blocks are tabulated in order of use (moves first, y axis before x) while they f
 synthesized at render time by the same numba tone function and quantization that fill the table, so both
 paths give bit-identical samples.
 
-Rendering: a slot's rows are summed exactly in int32 (four rows per pass), then each sample is
+Prefix rows (slm): for every tabulated (axis, kind) block there is an int32 prefix block
+``P[k] = sum_{j<k} row_j`` (k = 0..n_sites), so a run of consecutive sites ``[a, b)`` of one (axis, kind)
+(a block of rows moving together, a whole extracted line) costs two row reads, ``P[b] - P[a]``, instead of
+``b - a``; the sum is exact in int32 (|P| <= 64 * 32767), so the samples are bit-identical to the single rows.
+``lookup`` emits one run key for every run of two or more tones, so a slot never has more keys than tones.
+Their size is::
+
+    prefix_bytes = 4 * slot_samples * sum over axes ((n_sites(axis) + 1) * 5)     (slm; aod: none)
+
+e.g. grid-32x64 (3136 samples): 4 * 3136 * (33 + 65) * 5 = 6,146,560 B. They take what is left of
+``table_max_bytes`` after the int16 rows, whole blocks in the same order while they fit; runs of a kind
+without a prefix block fall back to single rows. Chain slots use single rows only.
+
+Rendering: a slot's rows are summed exactly in int32 (four rows per pass, a run per pass), then each sample is
 ``rint(base + q * sum)`` with base the float32 hold row (chain) or zero (slm). int16 rows halve the memory
 traffic of float32 rows, and a slot is bound by reading its rows.
 
@@ -80,6 +93,7 @@ __all__ = [
     "schroeder_phases",
     "phase_track",
     "shape_curve",
+    "prefix_formula_bytes",
     "table_formula_bytes",
 ]
 
@@ -105,6 +119,11 @@ KIND_NAMES = (
 #: Kinds tabulated per trap source, most used first (the order blocks are given table space).
 CHAIN_KINDS = (ISO_UP, ISO_DOWN, HEAD_UP, HEAD_DOWN, TAIL_UP, TAIL_DOWN, INNER_UP, INNER_DOWN)
 SLM_KINDS = (MOVE_UP, MOVE_DOWN, STATIC, RAMP_UP, RAMP_DOWN)
+
+# run keys (prefix rows): _RUN0 + (row of P[b] << _RUN_SHIFT) + row of P[a]; below _RUN0 are single rows
+_RUN_SHIFT = 20
+_RUN_MASK = (1 << _RUN_SHIFT) - 1
+_RUN0 = 1 << 44
 
 # rows of the shape table passed to the kernels
 _S, _G, _CUM, _ENV_OUT, _ENV_IN = range(5)
@@ -305,6 +324,13 @@ def table_formula_bytes(config: SystemConfig) -> int:
     return 2 * config.waveforms.slot_samples * sites * kinds
 
 
+def prefix_formula_bytes(config: SystemConfig) -> int:
+    """Bytes of the full prefix tables (slm only): ``4 * slot_samples * sum over axes ((n_sites + 1) * 5)``."""
+    if config.array.trap_source == "aod":
+        return 0
+    return 4 * config.waveforms.slot_samples * (config.array.nx + config.array.ny + 2) * len(SLM_KINDS)
+
+
 # --------------------------------------------------------------------------------------------------------
 # numba kernels
 
@@ -380,11 +406,16 @@ def _key(axis, kind, site, n_max, row_of):
 
 
 @njit(cache=True, nogil=True)
-def _lookup(kind, x_site, x_delta, y_site, y_delta, first, count, keys, stride, row_of, nx, ny, n_max, chain):
+def _lookup(kind, x_site, x_delta, y_site, y_delta, first, count, keys, stride, row_of, prow_of, nx, ny, n_max,
+            chain):
     """Resolve slots ``first..first+count-1`` to keys; returns 0, or ``code + 16 * slot`` on an invalid slot.
 
-    Slot j's keys start at ``j * stride``: ``[n_ch0, n_ch1, ch0 keys..., ch1 keys...]``. A key >= 0 is a table
-    row; a negative key ``-(code + 1)`` is synthesized directly, ``code = (axis * N_KINDS + kind) * n_max + site``.
+    Slot j's keys start at ``j * stride``: ``[n_ch0, n_ch1, ch0 keys..., ch1 keys...]``. A key in
+    ``[0, _RUN0)`` is a table row; a negative key ``-(code + 1)`` is synthesized directly,
+    ``code = (axis * N_KINDS + kind) * n_max + site``; a key ``>= _RUN0`` is a run of consecutive sites
+    ``[a, b)`` of one (axis, kind) with a prefix block (slm only): ``_RUN0 + (p_b << _RUN_SHIFT) + p_a``, with
+    ``p_a``, ``p_b`` rows of the prefix table. A run replaces two or more single keys, so a slot never has more
+    keys than tones and ``stride`` stays a bound.
     """
     for j in range(count):
         i = first + j
@@ -443,7 +474,11 @@ def _lookup(kind, x_site, x_delta, y_site, y_delta, first, count, keys, stride, 
             sites = x_site if axis == 0 else y_site
             deltas = x_delta if axis == 0 else y_delta
             n_ax = nx if axis == 0 else ny
-            c = 0
+            m_axis = m
+            run_m = 0  # key position, first site, length and kind of the run being built
+            run_a = 0
+            run_len = 0
+            run_kind = -1
             for t in range(n_ax):
                 k = sites[i, t]
                 if k < 0:
@@ -465,15 +500,24 @@ def _lookup(kind, x_site, x_delta, y_site, y_delta, first, count, keys, stride, 
                     if t > 0 and k + d <= sites[i, t - 1] + deltas[i, t - 1]:
                         return _E_CROSS + 16 * i
                     tk = STATIC if d == 0 else (MOVE_UP if d > 0 else MOVE_DOWN)
-                keys[kb + 2 + m] = _key(axis, tk, k, n_max, row_of)
-                m += 1
-                c += 1
-            keys[kb + axis] = c
+                p0 = prow_of[axis * N_KINDS + tk]
+                if p0 >= 0 and run_len > 0 and tk == run_kind and k == run_a + run_len:
+                    run_len += 1
+                    keys[kb + 2 + run_m] = _RUN0 + ((p0 + run_a + run_len) << _RUN_SHIFT) + (p0 + run_a)
+                    m = run_m + 1
+                else:
+                    run_m = m
+                    run_a = k
+                    run_len = 1
+                    run_kind = tk
+                    keys[kb + 2 + m] = _key(axis, tk, k, n_max, row_of)
+                    m += 1
+            keys[kb + axis] = m - m_axis
     return 0
 
 
 @njit(cache=True, nogil=True)
-def _failsafe_keys(kind, x_site, x_delta, y_site, y_delta, i, keys, row_of, nx, ny, n_max):
+def _failsafe_keys(kind, x_site, x_delta, y_site, y_delta, i, keys, row_of, prow_of, nx, ny, n_max):
     """Keys (one slot, as ``_lookup``) of steady full tones where slm slot ``i`` leaves them."""
     keys[0] = 0
     keys[1] = 0
@@ -485,7 +529,11 @@ def _failsafe_keys(kind, x_site, x_delta, y_site, y_delta, i, keys, row_of, nx, 
         sites = x_site if axis == 0 else y_site
         deltas = x_delta if axis == 0 else y_delta
         n_ax = nx if axis == 0 else ny
-        c = 0
+        m_axis = m
+        p0 = prow_of[axis * N_KINDS + STATIC]
+        run_m = 0
+        run_a = 0
+        run_len = 0
         for t in range(n_ax):
             k = sites[i, t]
             if k < 0:
@@ -493,10 +541,17 @@ def _failsafe_keys(kind, x_site, x_delta, y_site, y_delta, i, keys, row_of, nx, 
             end = k + deltas[i, t] if kd == SHIFT else k
             if end < 0 or end >= n_ax:
                 continue
-            keys[2 + m] = _key(axis, STATIC, end, n_max, row_of)
-            m += 1
-            c += 1
-        keys[axis] = c
+            if p0 >= 0 and run_len > 0 and end == run_a + run_len:
+                run_len += 1
+                keys[2 + run_m] = _RUN0 + ((p0 + run_a + run_len) << _RUN_SHIFT) + (p0 + run_a)
+                m = run_m + 1
+            else:
+                run_m = m
+                run_a = end
+                run_len = 1
+                keys[2 + m] = _key(axis, STATIC, end, n_max, row_of)
+                m += 1
+        keys[axis] = m - m_axis
 
 
 @njit(cache=True, nogil=True)
@@ -547,10 +602,23 @@ def _add_rows(acc, first, r0, r1, r2, r3, g):
 
 
 @njit(cache=True, nogil=True)
-def _render(keys, count, stride, n_ch, base, q, table, n_sites, cyc, amp, phi, shp, n_max, scale, inv_q, acc,
-            scratch, out):
+def _add_run(acc, first, pb, pa):
+    """``acc (=|+=) pb - pa``: a run's rows from two int32 prefix rows (exact)."""
+    n_samp = acc.shape[0]
+    if first:
+        for n in range(n_samp):
+            acc[n] = pb[n] - pa[n]
+    else:
+        for n in range(n_samp):
+            acc[n] += pb[n] - pa[n]
+
+
+@njit(cache=True, nogil=True)
+def _render(keys, count, stride, n_ch, base, q, table, prefix, n_sites, cyc, amp, phi, shp, n_max, scale, inv_q,
+            acc, scratch, out):
     """Write ``count`` slots to ``out`` (int16[>= count*N, n_ch], C-contiguous): per channel,
-    ``rint(base[ch] + q[ch] * sum of the slot's int16 rows)``, clipped to +-32767."""
+    ``rint(base[ch] + q[ch] * sum of the slot's int16 rows)``, clipped to +-32767. A run key adds
+    ``P[b] - P[a]`` (two int32 prefix rows), the same int32 sum as its rows one by one."""
     n_samp = acc.shape[1]
     flat = out.reshape(-1)
     for j in range(count):
@@ -563,7 +631,15 @@ def _render(keys, count, stride, n_ch, base, q, table, n_sites, cyc, amp, phi, s
                 a[:] = 0
             t = 0
             while t < nk:
-                g = min(4, nk - t)
+                key = keys[off + t]
+                if key >= _RUN0:
+                    v = key - _RUN0
+                    _add_run(a, t == 0, prefix[v >> _RUN_SHIFT], prefix[v & _RUN_MASK])
+                    t += 1
+                    continue
+                g = 1  # up to four single rows, up to the next run
+                while g < 4 and t + g < nk and keys[off + t + g] < _RUN0:
+                    g += 1
                 r0 = _row(keys[off + t], table, scratch[0], n_sites, cyc, amp, phi, shp, n_max, scale, inv_q)
                 r1 = r0
                 r2 = r0
@@ -613,7 +689,8 @@ def _convert2(out, b0, a0, q0, b1, a1, q1):
 class WaveformBank:
     """Tone tables, the lookup table and the render kernels for one configuration (see the module docstring)."""
 
-    def __init__(self, config: SystemConfig) -> None:
+    def __init__(self, config: SystemConfig, *, prefix: bool = True) -> None:
+        """``prefix=False`` renders every tone from its own row (no prefix tables; for tests)."""
         wf = config.waveforms
         arr = config.array
         self.config = config
@@ -671,6 +748,26 @@ class WaveformBank:
                 self._row_of[(a * N_KINDS + k) * self.n_max + site] = r0 + site
         self.table_bytes = int(self.table.nbytes)
 
+        # prefix tables (slm): for every tabulated (axis, kind) block, in the same order, while the rest of the
+        # budget holds them: int32 P[k] = sum_{j<k} row_j, k = 0..n_sites, so a run [a, b) is P[b] - P[a]
+        pchosen = []
+        prows = 0
+        if prefix and not self.chain:
+            for a, k, r0 in chosen:
+                size = 4 * n * (int(self._n_sites[a]) + 1)
+                if size <= budget:
+                    pchosen.append((a, k, r0, prows))
+                    prows += int(self._n_sites[a]) + 1
+                    budget -= size
+        self.prefix = np.zeros((prows, n), dtype=np.int32)
+        self._prow_of = np.full(2 * N_KINDS, -1, dtype=np.int64)
+        for a, k, r0, p0 in pchosen:
+            ns = int(self._n_sites[a])
+            np.cumsum(self.table[r0 : r0 + ns], axis=0, dtype=np.int32, out=self.prefix[p0 + 1 : p0 + ns + 1])
+            self._prow_of[a * N_KINDS + k] = p0
+        self.prefixed = [(self.axes[a], KIND_NAMES[k]) for a, k, _, _ in pchosen]
+        self.prefix_bytes = int(self.prefix.nbytes)
+
         # the base row of every slot: the hold waveform (chain) or silence (slm), and its int16 rendering
         self._base = np.zeros((self.n_channels, n), dtype=np.float32)
         if self.chain:
@@ -707,7 +804,7 @@ class WaveformBank:
                 f"keys buffer holds {keys.shape[0]} keys; {count} slots need max_keys({count}) = {count * self.stride}"
             )
         err = _lookup(ops.kind, ops.x_site, ops.x_delta, ops.y_site, ops.y_delta, first, count, keys, self.stride,
-                      self._row_of, self.nx, self.ny, self.n_max, self.chain)
+                      self._row_of, self._prow_of, self.nx, self.ny, self.n_max, self.chain)
         if err:
             self._last_keys = None
             i = err // 16
@@ -734,7 +831,7 @@ class WaveformBank:
         if self._last_keys is None or first != self._last_first or count > self._last_count:
             raise ValueError(f"render({first}, {count}) needs a lookup() of the same slots first")
         self._check_out(out, count * self.slot_samples)
-        _render(self._last_keys, count, self.stride, self.n_channels, self._base, self.q, self.table,
+        _render(self._last_keys, count, self.stride, self.n_channels, self._base, self.q, self.table, self.prefix,
                 self._n_sites, self._cyc, self._amp, self._phi, self._shp, self.n_max, self.scale, self._inv_q,
                 self._acc, self._scratch, out)
 
@@ -747,10 +844,10 @@ class WaveformBank:
         if not 0 <= i < ops.n:
             raise ValueError(f"slot {i} is outside the {ops.n} slots of the plan")
         _failsafe_keys(ops.kind, ops.x_site, ops.x_delta, ops.y_site, ops.y_delta, i, self._fs_keys,
-                       self._row_of, self.nx, self.ny, self.n_max)
-        _render(self._fs_keys, 1, self.stride, self.n_channels, self._base, self.q, self.table, self._n_sites,
-                self._cyc, self._amp, self._phi, self._shp, self.n_max, self.scale, self._inv_q, self._acc,
-                self._scratch, out)
+                       self._row_of, self._prow_of, self.nx, self.ny, self.n_max)
+        _render(self._fs_keys, 1, self.stride, self.n_channels, self._base, self.q, self.table, self.prefix,
+                self._n_sites, self._cyc, self._amp, self._phi, self._shp, self.n_max, self.scale, self._inv_q,
+                self._acc, self._scratch, out)
 
     def hold(self) -> np.ndarray:
         """int16[N, n_channels]: the idle waveform (chain: every site's static tone; slm: silence)."""

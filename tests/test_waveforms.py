@@ -621,3 +621,120 @@ def test_shape_curves() -> None:
         assert np.all(np.diff(s) >= 0)
     with pytest.raises(ValueError, match="shape"):
         shape_curve("cubic", 1.0, u)
+
+
+# --- prefix-sum rows (runs of consecutive sites of one kind) ---------------------------------------------
+
+
+def run_sites(rng, n: int) -> np.ndarray:
+    """Ascending sites of an n-site axis as a few runs with gaps (runs of 1 included), at least one site."""
+    mask = np.zeros(n, bool)
+    for _ in range(int(rng.integers(1, 5))):
+        a = int(rng.integers(0, n))
+        mask[a : a + int(rng.integers(1, n // 2 + 1))] = True
+    if rng.random() < 0.2:
+        mask |= rng.random(n) < 0.3  # scattered sites as well
+    return np.flatnonzero(mask)
+
+
+def run_deltas(rng, sites: np.ndarray, n: int) -> np.ndarray:
+    """Legal deltas, mostly constant over stretches (so a run splits into runs of moves and of statics)."""
+    for _ in range(200):
+        d = np.empty(sites.size, np.int64)
+        cur = int(rng.integers(-1, 2))
+        for t in range(sites.size):
+            if rng.random() < 0.25:
+                cur = int(rng.integers(-1, 2))
+            d[t] = cur
+        end = sites + d
+        if end.min() >= 0 and end.max() < n and np.all(np.diff(end) > 0):
+            return d
+    return np.zeros(sites.size, np.int64)
+
+
+def random_run_plan(rng, nx: int, ny: int, n_slots: int) -> Operations:
+    ops = Operations(nx=nx, ny=ny, capacity=n_slots)
+    for _ in range(n_slots):
+        kind = [EXTRACT, SHIFT, SHIFT, IMPLANT, IDLE][int(rng.integers(0, 5))]
+        if kind == IDLE:
+            ops.append(IDLE, [], [])
+            continue
+        ys, xs = run_sites(rng, ny), run_sites(rng, nx)
+        if kind == SHIFT:
+            ops.append(SHIFT, ys, xs, run_deltas(rng, ys, ny), run_deltas(rng, xs, nx))
+        else:
+            ops.append(kind, ys, xs)
+    return ops
+
+
+def test_prefix_runs_render_bit_identically_to_single_rows() -> None:
+    from engine.waveforms import _RUN0, prefix_formula_bytes
+
+    nx, ny = 12, 40
+    cfg = grid_config(nx, ny)
+    b = bank("grid-runs", cfg)
+    plain = WaveformBank(cfg, prefix=False)
+    n = cfg.waveforms.slot_samples
+    assert plain.prefix_bytes == 0 and b.prefix_bytes == prefix_formula_bytes(cfg) == 4 * n * (nx + ny + 2) * 5
+    assert len(b.prefixed) == 10
+    rng = np.random.default_rng(21)
+    ops = random_run_plan(rng, nx, ny, 60)
+    keys = np.zeros(b.max_keys(ops.n), np.int64)
+    b.lookup(ops, 0, ops.n, keys)
+    assert (keys >= _RUN0).sum() > 50  # runs are used
+    got = b.render_slots(ops)
+    assert np.array_equal(got, plain.render_slots(ops))
+    ref = ReferenceSynth(cfg)
+    for i in range(0, ops.n, 7):
+        assert np.abs(got[i * n : (i + 1) * n] - ref.slot(ops, i)).max() <= 1.0, ops.describe(i)
+    for i in range(ops.n):
+        assert np.array_equal(b.failsafe(ops, i), plain.failsafe(ops, i))
+    # every kind on both axes in one run of all sites
+    full = Operations(nx=nx, ny=ny)
+    ya, xa = np.arange(ny), np.arange(nx)
+    full.append(EXTRACT, ya, xa)
+    full.append(SHIFT, ya, xa, np.zeros(ny, int), np.zeros(nx, int))
+    full.append(SHIFT, ya[:-1], xa[:-1], np.ones(ny - 1, int), np.ones(nx - 1, int))
+    full.append(SHIFT, ya[1:], xa[1:], -np.ones(ny - 1, int), -np.ones(nx - 1, int))
+    full.append(IMPLANT, ya, xa)
+    assert np.array_equal(b.render_slots(full), plain.render_slots(full))
+    # budgets that hold only some prefix blocks (or none) fall back to single rows, bit-identically
+    table = table_formula_bytes(cfg)
+    for extra in (0, 4 * n * (ny + 1), 4 * n * (ny + 1) * 3 + 4 * n * (nx + 1)):
+        part = WaveformBank(grid_config(nx, ny, waveforms={"table_max_bytes": table + extra}))
+        assert part.table_bytes + part.prefix_bytes <= table + extra
+        assert (part.prefix_bytes == 0) == (extra == 0) and len(part.prefixed) < 10
+        assert np.array_equal(part.render_slots(ops), got)
+        for i in range(ops.n):
+            assert np.array_equal(part.failsafe(ops, i), plain.failsafe(ops, i))
+
+
+def test_max_keys_bounds_the_lookup_output() -> None:
+    nx, ny = 12, 40
+    cfg = grid_config(nx, ny)
+    b = bank("grid-runs", cfg)
+    plain = WaveformBank(cfg, prefix=False)
+    rng = np.random.default_rng(5)
+    ops = random_run_plan(rng, nx, ny, 40)
+    # the worst case: every site lit, kinds alternating so that no run forms
+    ya, xa = np.arange(ny), np.arange(nx)
+    ops.append(SHIFT, ya, xa, np.zeros(ny, int), np.zeros(nx, int))
+    ops.append(EXTRACT, ya, xa)
+    for bk in (b, plain):
+        m = bk.max_keys(ops.n)
+        keys = np.full(m + 8, -7, np.int64)
+        bk.lookup(ops, 0, ops.n, keys)
+        assert np.all(keys[m:] == -7)  # nothing written past the bound
+        for j in range(ops.n):
+            used = 2 + keys[j * bk.stride] + keys[j * bk.stride + 1]
+            assert used <= bk.stride
+            ys, _, xs, _ = ops.tones(j)
+            assert keys[j * bk.stride] <= xs.size and keys[j * bk.stride + 1] <= ys.size
+        with pytest.raises(ValueError, match="max_keys"):
+            bk.lookup(ops, 0, ops.n, np.zeros(m - 1, np.int64))
+    # a full run costs one key per axis with prefix rows, one per tone without
+    k1 = np.zeros(b.max_keys(1), np.int64)
+    b.lookup(ops, ops.n - 1, 1, k1)
+    assert k1[0] == 1 and k1[1] == 1
+    plain.lookup(ops, ops.n - 1, 1, k1)
+    assert k1[0] == nx and k1[1] == ny

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import deque
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -34,7 +35,10 @@ from drivers.sim.world import World
 from engine.config import AWGConfig, SystemConfig
 from engine.devices import Clock, DeviceError, StepInfo
 
-__all__ = ["PlayRecord", "SimAWG"]
+__all__ = ["LOG_LENGTH", "PlayRecord", "SimAWG"]
+
+#: Step visits and pulses kept for inspection (the newest); bounded so that a long run's memory stays flat.
+LOG_LENGTH = 20_000
 
 
 @dataclass
@@ -90,7 +94,7 @@ class SimAWG:
         self.uploads = 0
         self.bytes_uploaded = 0
         self.torn_plays = 0  # passes that started while their segment was being uploaded
-        self.pulses: list[tuple[str, float]] = []
+        self.pulses: deque[tuple[str, float]] = deque(maxlen=LOG_LENGTH)
         self._lock = threading.RLock()
         self._trigger_in = threading.Event()
         n_ch = 1 if config.array.trap_source == "aod" else 2
@@ -122,7 +126,7 @@ class SimAWG:
             self._segments: list[_Segment | None] = [None] * config.n_segments
             self._steps: list[StepInfo | None] = [None] * config.n_steps
             self._pending: list[tuple[float, int, int, object]] = []  # (t_effective, kind 0=seg 1=step, index, value)
-            self._log: list[PlayRecord] = []
+            self._log: deque[PlayRecord] = deque(maxlen=LOG_LENGTH)
             self._running = False
             self._pass_segment = -1
             self._fault: str | None = None
@@ -301,7 +305,7 @@ class SimAWG:
     # --- inspection ------------------------------------------------------------------------------------
 
     def played_steps(self) -> list[PlayRecord]:
-        """Every step visit so far (after syncing), oldest first."""
+        """The latest ``LOG_LENGTH`` step visits (after syncing), oldest first."""
         with self._lock:
             self._sync()
             return list(self._log)
@@ -314,7 +318,10 @@ class SimAWG:
     def clear_log(self) -> None:
         with self._lock:
             self._sync()
-            self._log = self._log[-1:] if self._running else []
+            last = self._log[-1] if self._running and self._log else None
+            self._log.clear()
+            if last is not None:
+                self._log.append(last)
 
     def segment_samples(self, index: int) -> np.ndarray | None:
         """The samples in segment ``index`` as the card holds them now (read-only)."""

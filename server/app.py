@@ -48,7 +48,7 @@ from server.models import (
 )
 from server.labscript import ShotFileError
 from server.png import encode_png
-from server.service import CalibrationConflict, ConfigRejected, LabService, NotArmed
+from server.service import CalibrationConflict, ConfigRejected, DevicesUnavailable, LabService, NotArmed
 
 __all__ = ["create_app"]
 
@@ -63,6 +63,9 @@ _BODY_ERRORS: dict[int | str, dict[str, Any]] = {
 _AUTH_ERRORS: dict[int | str, dict[str, Any]] = {401: _BODY_ERRORS[401]}
 _CONFLICT: dict[int | str, dict[str, Any]] = {409: {**_ERR, "description": "not possible in the present state; `detail` says why"}}
 _DEVICE = {503: {**_ERR, "description": "a device failed while acquiring frames; `detail` says which"}}
+_NO_DEVICES: dict[int | str, dict[str, Any]] = {
+    503: {**_ERR, "description": "the configured devices could not be opened; `detail` says why and how to fix it"}
+}
 _CALIBRATION = Annotated[ThresholdCalibrationOut | PsfCalibrationOut, Field(discriminator="kind")]
 
 
@@ -118,6 +121,10 @@ def create_app(
         app.add_middleware(
             CORSMiddleware, allow_origins=list(cors_origins), allow_methods=["*"], allow_headers=["*"]
         )
+
+    @app.exception_handler(DevicesUnavailable)
+    async def no_devices(request: Request, exc: DevicesUnavailable) -> Response:
+        return JSONResponse({"detail": str(exc)}, status_code=503)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
@@ -217,7 +224,7 @@ def create_app(
         "/api/run",
         response_model=RunStateOut,
         dependencies=auth,
-        responses=auth_errors,
+        responses={**auth_errors, **_NO_DEVICES},
         summary="Run shots continuously (with a pause between them)",
     )
     def run() -> RunStateOut:
@@ -239,7 +246,7 @@ def create_app(
         "/api/arm",
         response_model=ArmOut,
         dependencies=auth,
-        responses={**body_errors, **_CONFLICT},
+        responses={**body_errors, **_CONFLICT, **_NO_DEVICES},
         summary="Stop continuous shots and wait for the sequencer's trigger (POST /api/trigger, or the hardware line)",
     )
     def arm(request: Annotated[ArmRequest | None, Body()] = None) -> ArmOut:
@@ -253,7 +260,7 @@ def create_app(
         "/api/trigger",
         response_model=ShotOut,
         dependencies=auth,
-        responses={**auth_errors, **_CONFLICT},
+        responses={**auth_errors, **_CONFLICT, **_NO_DEVICES},
         summary="The sequencer's software trigger: run one shot now (only while armed) and return its record",
     )
     def trigger() -> ShotOut:
@@ -327,7 +334,7 @@ def create_app(
         "/api/shots",
         response_model=ShotOut,
         dependencies=auth,
-        responses=body_errors,
+        responses={**body_errors, **_NO_DEVICES},
         summary="Run one shot now and return its record (optionally with a config override for this shot only)",
     )
     def post_shot(request: Annotated[ShotRequest | None, Body()] = None) -> ShotOut:
@@ -345,6 +352,7 @@ def create_app(
             **body_errors,
             404: {"model": ErrorOut, "description": "no such shot file"},
             409: {"model": ErrorOut, "description": "the shot file already holds results"},
+            **_NO_DEVICES,
         },
         summary="Run the shot a labscript shot file describes and write its results into that file",
     )

@@ -127,7 +127,13 @@ def main(args: argparse.Namespace) -> int:
     devices = f"camera {config.devices.camera}, AWG {config.devices.awg}"
     _say(f"llrs serve: config '{config.name}' ({config.array.nx}x{config.array.ny} traps, {devices}); "
          "starting the engine (compiling kernels: the first start takes longer)...")
-    service = LabService(engine_thread=_engine_thread(config), store=RunStore(args.runs_dir), pause_s=args.pause)
+    service = LabService(
+        engine_thread=_engine_thread(config),
+        store=RunStore(args.runs_dir),
+        pause_s=args.pause,
+        engine_factory=_engine_thread,
+        config=config,
+    )
     dashboard = None
     try:
         service.start(run=False)
@@ -143,7 +149,10 @@ def main(args: argparse.Namespace) -> int:
         server = uvicorn.Server(
             uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=3, ws_ping_interval=20)
         )
-        if not args.idle:
+        fault = service.status().reason
+        if fault is not None:
+            _say(f"llrs serve: {fault}")
+        elif not args.idle:
             service.run()
         _say("")
         if dashboard_port is not None:

@@ -26,6 +26,7 @@ import sys
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable
+from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -40,11 +41,18 @@ from server.runstore import RunStore
 if TYPE_CHECKING:
     from engine.engine import EngineThread
 
-__all__ = ["CalibrationConflict", "ConfigRejected", "LabService", "NotArmed", "deep_merge"]
+__all__ = ["CalibrationConflict", "ConfigRejected", "DevicesUnavailable", "LabService", "NotArmed", "deep_merge"]
 
 
 #: GIL switch interval while a lab service runs (see ``LabService.start``).
 SWITCH_INTERVAL_S = 2e-4
+
+
+def _devices_reason(err: BaseException) -> str:
+    return (
+        f"the devices could not be opened ({type(err).__name__}: {err}); the server keeps serving: fix `devices` "
+        "in the configuration (PUT or PATCH /api/config), or check them with `llrs devices`"
+    )
 
 
 class ConfigRejected(ValueError):
@@ -57,6 +65,28 @@ class ConfigRejected(ValueError):
 
 class NotArmed(RuntimeError):
     """A trigger arrived while the server was not armed (or an arm the devices cannot honour)."""
+
+
+class DevicesUnavailable(RuntimeError):
+    """The configured devices could not be opened: the server keeps serving (status, config, history) and
+    runs no shot until a configuration whose devices open is applied."""
+
+
+class _NoEngine:
+    """Stands in for the engine thread while the devices cannot be opened: every command says why."""
+
+    engine = None
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+
+    def submit(self, command: Callable[[Any], Any]) -> Future[Any]:
+        future: Future[Any] = Future()
+        future.set_exception(DevicesUnavailable(self.reason))
+        return future
+
+    def close(self) -> None:
+        pass
 
 
 class CalibrationConflict(RuntimeError):
@@ -86,8 +116,14 @@ class LabService:
         store: RunStore | None = None,
         pause_s: float = 0.5,
         history: int = 2000,
+        engine_factory: Callable[[SystemConfig], EngineThread] | None = None,
+        config: SystemConfig | None = None,
     ) -> None:
-        self._et = engine_thread
+        """``engine_factory`` (with ``config``, the configuration ``engine_thread`` was built for) lets the
+        service survive devices that cannot be opened and re-open devices when ``devices`` changes."""
+        self._et: EngineThread | _NoEngine = engine_thread
+        self._factory = engine_factory
+        self._initial_config = config
         self._store = store
         self.pause_s = pause_s
         self._lock = threading.Lock()  # serializes commands to the engine
@@ -121,10 +157,18 @@ class LabService:
         # GIL waits up to the switch interval (5 ms by default) for the holder to let go, so request handling
         # could add milliseconds to a cycle; 0.2 ms bounds that wait at a small cost in throughput.
         sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
-        self._et.start()
-        engine = self._et.engine
-        assert engine is not None
-        self._config = engine.config
+        try:
+            self._et.start()  # type: ignore[union-attr]
+        except Exception as err:
+            if self._factory is None or self._initial_config is None:
+                raise
+            self._et = _NoEngine(_devices_reason(err))
+            self._config = self._initial_config
+            self._fault = self._et.reason
+        else:
+            engine = self._et.engine
+            assert engine is not None
+            self._config = engine.config
         if self._store is not None:
             self._store.note_config(self._config)
         self._runner.start()
@@ -176,6 +220,7 @@ class LabService:
 
     def run(self) -> None:
         """Start continuous shots (a pause of ``pause_s`` between them); disarms a waiting trigger."""
+        self._require_engine()
         with self._state_lock:
             self._fault = None
             self._armed = False
@@ -205,6 +250,7 @@ class LabService:
         ``loop.trigger: hardware`` the devices must have a trigger input (``engine.wait_trigger``); otherwise
         ``NotArmed`` says so and nothing changes.
         """
+        self._require_engine()
         if self.trigger_source == "hardware" and not hasattr(self._et.engine, "wait_trigger"):
             raise NotArmed(
                 "loop.trigger is 'hardware' but these devices have no trigger input; "
@@ -395,10 +441,40 @@ class LabService:
 
     # -- internals --------------------------------------------------------------------------------------------
 
+    def _require_engine(self) -> None:
+        if isinstance(self._et, _NoEngine):
+            raise DevicesUnavailable(self._et.reason)
+
+    def _reopen(self, config: SystemConfig) -> None:
+        """Open the devices ``config`` names on a new engine thread; keep the old one if they do not open."""
+        assert self._factory is not None
+        thread = self._factory(config)
+        try:
+            thread.start()
+        except Exception as err:
+            raise ConfigRejected(
+                [{"loc": ["body", "devices"], "msg": _devices_reason(err), "type": "devices_unavailable"}]
+            ) from None
+        old, self._et = self._et, thread
+        old.close()
+        with self._state_lock:
+            self._fault = None
+
     def _apply(self, config: SystemConfig, *, remember: bool = True) -> None:
-        """Apply on the engine thread (between shots); raise ``ConfigRejected`` if the engine refuses it."""
+        """Apply on the engine thread (between shots); raise ``ConfigRejected`` if the engine refuses it.
+
+        With an engine factory, a change of ``devices`` (or devices that failed to open before) re-opens the
+        devices on a new engine thread; if they do not open, the running engine and config stay."""
         if self._store is not None:
             self._store.note_config(config)
+        reopen = isinstance(self._et, _NoEngine) or (
+            self._factory is not None and self._config is not None and config.devices != self._config.devices
+        )
+        if reopen and self._factory is not None:
+            self._reopen(config)
+            if remember:
+                self._config = config
+            return
         try:
             self._et.submit(lambda engine: engine.apply(config)).result()
         except (ValueError, KeyError, NotImplementedError) as err:

@@ -599,7 +599,7 @@ def _col_update(
     the per-barrier column sets and scores up to date (only the bits that changed are touched).
 
     Window: the ``H = r1 - r0`` consecutive atoms that fill the target rows in order, chosen to minimise
-    (max(T, B), T + B) where T = how many rows the top window atom still has to come down (the number of
+    (max(T, B), |T - B|) where T = how many rows the top window atom still has to come down (the number of
     top Fills the column needs) and B the same for the bottom. A top Fill at barrier h (rows < h move
     down) is legal iff the column has a hole at h - 1 or h, harmless iff h <= LT (the first window atom
     that must not move down), useful iff also T > 0 and the top window atom is above h. Bottom likewise.
@@ -621,7 +621,7 @@ def _col_update(
                 t = 0
             if b < 0:
                 b = 0
-            key = (max(t, b) << 20) + t + b
+            key = (max(t, b) << 20) + (t - b if t > b else b - t)  # then balanced sides pair better
             if best_key < 0 or key < best_key:
                 best = kk
                 best_key = key
@@ -915,7 +915,23 @@ def _fill_phase(
         _col_update(c, nr, nwr, r0, r1, True, ob, prow, st, cm, vt, ut, vb, ub, sct, scb, ptop, pbot)
     if dedicated:
         return OK, nb, nrr, ncr, n_steps
+    # re-chosen windows make the greedy's progress hard to bound, so cap its batches; past the cap (never
+    # reached on random fillings) every column still short is compressed on its own, which always finishes
+    budget = 2 * nr * (c1 - c0) + 64
     while True:
+        budget -= 1
+        if budget < 0:
+            for c in range(c0, c1):
+                if st[c, _T] > 0 or st[c, _B] > 0:
+                    for r in range(nr):
+                        g[c, r] = (ob[c, r >> 6] >> np.uint64(r & 63)) & np.uint64(1)
+                    nb, nrr, ncr, n_steps = _column_batch(
+                        g, c, nr, r0, h_rows, st[c, _K], pos, transposed, nx_real,
+                        bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+                    )  # fmt: skip
+                    if nb < 0:
+                        return OVERFLOW, nb, nrr, ncr, n_steps
+            return OK, nb, nrr, ncr, n_steps
         n_t = _top_k(sct, 1, nr, it, tv, k_best)
         n_b = _top_k(scb, 0, nr - 1, ib, bv, k_best)
         if n_t == 0 and n_b == 0:

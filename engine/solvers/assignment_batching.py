@@ -1,25 +1,27 @@
 """Parallel batching of single-atom hops and row/column relays (numba): many share one product set.
 
 Input: hops in a valid *sequential* order (each runs over traps that are empty when its turn comes, as the
-assignment planner's chains do), each a path of one-site steps from its source to its destination.
+assignment planner's chains do), each a path of one-site steps from its source to its destination, grouped:
+a *relay* is the run of a chain's hops along one row (or column), every atom moving to where the next one
+starts; it shares one row (column) tone, so its atoms are exactly its product set, and all its atoms move
+at once (each tone stops where its successor started, so tones never meet).
 
-A batch takes a set of hops whose atoms sit in **distinct rows and distinct columns**: the product set of
-their rows x columns then holds exactly those atoms (the other intersections must be empty traps, checked)
-and every atom has its own row tone and column tone. Each slot every atom takes the next step of its path
-(its row tone moves for a vertical step, its column tone for a horizontal one, never both), so a batch
-lasts 2 + the longest path. It is legal when
+A batch takes groups whose atoms sit in **distinct rows and distinct columns** across groups: the product
+set of all their tones then holds exactly those atoms (the other crossings must be empty traps, checked).
+Each slot every atom takes the next step of its path (its row tone moves for a vertical step, its column
+tone for a horizontal one, never both), so a batch lasts 2 + the longest path. It is legal when
 
-- the row tones keep their order at every slot, and so do the column tones (no crossing or merging), which
-  also keeps any two atoms out of each other's row and column, so they never meet;
+- across groups, row tones keep their order at every slot, and so do column tones (no crossing or merging),
+  which also keeps two atoms of different groups out of each other's row and column, so they never meet;
 - every trap a path enters is empty now or is the source of an atom in the batch (extracted), and no two
   hops end in the same trap;
-- the hop may run before the earlier hops it overtakes: its traps (source, path, destination) are not
-  touched by any of them.
+- the group may run before the earlier groups it overtakes: its traps (sources, paths, destinations) are
+  not touched by any of them.
 
-Hops are taken greedily in order: a batch starts with the first hop not yet run and adds every later hop
-(within a look-ahead window) that fits and does not make the batch longer than ``extend`` extra slots.
-One-site steps are listed slot by slot, which is a valid sequential order (two atoms in a batch are never
-adjacent, and a source is left in the first slot).
+Groups are taken greedily in order: a batch starts with the first group not yet run and adds every later
+group (within a look-ahead window) that fits and does not make the batch longer than ``extend`` extra
+slots. One-site steps are listed slot by slot, each relay front atom first, which is a valid sequential
+order (atoms of different groups are never adjacent, and a source is left in the first slot).
 """
 
 from __future__ import annotations

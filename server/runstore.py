@@ -59,7 +59,8 @@ class _RunFile:
         self.max_cycles = config.loop.max_cycles + 1
         self.shape = (arr.ny, arr.nx)
         self.n = 0
-        f = h5py.File(path, "x", libver="latest")
+        # appends only: a small chunk cache per dataset keeps a long run's memory flat (HDF5's default is 1 MiB each)
+        f = h5py.File(path, "x", libver="latest", rdcc_nbytes=64 * 1024)
         self.file = f
         f.attrs["config_json"] = config.model_dump_json()
         f.attrs["config_digest"] = self.digest

@@ -38,7 +38,7 @@ from engine.devices import Clock, DeviceError, StepInfo
 __all__ = ["LOG_LENGTH", "PlayRecord", "SimAWG"]
 
 #: Step visits and pulses kept for inspection (the newest); bounded so that a long run's memory stays flat.
-LOG_LENGTH = 20_000
+LOG_LENGTH = 4096
 
 
 @dataclass

@@ -114,8 +114,8 @@ from engine.solvers import solve
 out = []
 for seed in range(4):
     rng = np.random.default_rng(seed)
-    mask = rng.random((10, 12)) < 0.4
-    occ = rng.random((10, 12)) < 0.6
+    mask = rng.random((7, 9)) < 0.4
+    occ = rng.random((7, 9)) < 0.6
     if occ.sum() < mask.sum():
         continue
     plan = solve(occ, mask, algorithm="assignment")

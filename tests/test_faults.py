@@ -7,17 +7,17 @@ import numpy as np
 import pytest
 
 from drivers.sim.lab import SimLab, build_sim_lab
-from engine.config import SystemConfig, load_config
+from engine.config import SystemConfig
 from engine.engine import Engine
 from engine.records import Outcome
+from sim_signals import chain_config
 
 
 def chain(**faults: object) -> SystemConfig:
-    """The 1x64 example, lossless, with small segments so a plan streams through several of them."""
-    base = load_config("examples/chain-1x64.yaml")
-    data = base.model_dump()
+    """A 24-trap chain, lossless, with 2-slot segments so a plan streams through several of them."""
+    data = chain_config(24).model_dump()
     data["sim"].update(lossless=True, seed=5, faults={**data["sim"]["faults"], **faults})
-    data["awg"].update(waveforms_per_segment=4)
+    data["awg"].update(waveforms_per_segment=2)
     return SystemConfig.model_validate(data)
 
 
@@ -66,7 +66,7 @@ def test_fault_ends_the_shot_defined_and_clears(rig, faults: dict, reason: str) 
 
 def test_late_uploads_underrun_into_the_failsafe_and_still_fill_the_target(rig) -> None:
     engine, lab = rig
-    engine.apply(chain(upload_delay_s=200e-6))  # 4 slots play in 40 us; each upload now takes > 200 us
+    engine.apply(chain(upload_delay_s=200e-6))  # 2 slots play in 20 us; each upload now takes > 200 us
     underruns = 0
     for _ in range(6):
         record = engine.run_shot()

@@ -86,7 +86,6 @@ class AODParallelPlanner:
         self.operations = Operations(nx=nx, ny=ny, capacity=24 * m + 64)
         self._y_used = np.zeros(self.operations.capacity, dtype=np.int64)
         self._x_used = np.zeros(self.operations.capacity, dtype=np.int64)
-        self._target_key: tuple | None = None
         self._frame = (False, 0, 0, 0, 0)
         self._nb = 0
         self._n_steps = 0
@@ -115,7 +114,6 @@ class AODParallelPlanner:
             occ[:] = True
         self.solve_moves(occ, target)
         self.batch()
-        self._target_key = None
         self._solved = False
 
     # -- targets ---------------------------------------------------------------------------------------
@@ -160,12 +158,11 @@ class AODParallelPlanner:
         when there are fewer atoms than target traps."""
         if occupancy.shape != (self.ny, self.nx):
             raise ValueError(f"occupancy shape {occupancy.shape} must be (ny, nx) = {(self.ny, self.nx)}")
-        key = (id(target), target.ctypes.data)
-        if self._target_key != key or not self._rect_cached_ok(target):
-            self._rect_cache = self._rect(target)
-            self._target_copy = target.copy()
-            self._target_key = key
-        r0, r1, c0, c1 = self._rect_cache
+        if target.shape != (self.ny, self.nx):
+            self._rect(target)  # raises with the shape
+        r0, r1, c0, c1, ok = find_rect(target)  # a compiled scan: cheaper than comparing with a cached copy
+        if ok != 1:
+            self._rect(target)  # raises, naming what is wrong
         self._solved = False
         frame = self._choose_frame(occupancy, r0, r1, c0, c1)
         self._frame = frame
@@ -197,9 +194,6 @@ class AODParallelPlanner:
         self._nb, self._n_steps, self._n_slots = nb, n_steps, n_slots
         self._solved = True
         return n_steps
-
-    def _rect_cached_ok(self, target: np.ndarray) -> bool:
-        return np.array_equal(target, self._target_copy)
 
     def batch(self) -> Plan:
         """The waveform slots of the last solve (a view of the planner's table, reused next time)."""

@@ -24,8 +24,9 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 import numpy as np
+from numba import njit
 
-__all__ = ["IDLE", "EXTRACT", "SHIFT", "IMPLANT", "OpKind", "Operations", "Plan"]
+__all__ = ["IDLE", "EXTRACT", "SHIFT", "IMPLANT", "OpKind", "Operations", "Plan", "clear_slots"]
 
 
 class OpKind(IntEnum):
@@ -146,3 +147,23 @@ class Plan:
     @property
     def n_steps(self) -> int:
         return int(self.steps.shape[0])
+
+
+@njit(cache=True, nogil=True)
+def clear_slots(
+    n_prev: int, kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray,
+    x_delta: np.ndarray, y_used: np.ndarray, x_used: np.ndarray,
+) -> None:
+    """Forget the previous plan's ``n_prev`` slots in place, touching only the tones they used (numba
+    planners call this before writing a new plan into the same table, so no row is cleared twice)."""
+    for i in range(n_prev):
+        for j in range(y_used[i]):
+            y_site[i, j] = -1
+            y_delta[i, j] = 0
+        for j in range(x_used[i]):
+            x_site[i, j] = -1
+            x_delta[i, j] = 0
+        kind[i] = 0
+        y_used[i] = 0
+        x_used[i] = 0
+

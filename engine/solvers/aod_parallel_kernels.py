@@ -22,7 +22,7 @@ from numba import config as numba_config
 from numba import njit, types
 from numba.extending import intrinsic
 
-from engine.operations import EXTRACT, IMPLANT, SHIFT
+from engine.operations import EXTRACT, IMPLANT, SHIFT, clear_slots
 
 __all__ = ["OK", "UNSOLVABLE", "OVERFLOW", "STUCK", "emit_batches", "plan_rect", "find_rect"]
 
@@ -1093,16 +1093,7 @@ def emit_batches(
         need += bmeta[b, 4] + 2
     if need > kind.shape[0]:
         return -need
-    for i in range(n_prev):
-        for j in range(y_used[i]):
-            y_site[i, j] = -1
-            y_delta[i, j] = 0
-        for j in range(x_used[i]):
-            x_site[i, j] = -1
-            x_delta[i, j] = 0
-        kind[i] = 0
-        y_used[i] = 0
-        x_used[i] = 0
+    clear_slots(n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
     n = 0
     for b in range(nb):
         a0, a1, b0, b1, n_shift = bmeta[b, 0], bmeta[b, 1], bmeta[b, 2], bmeta[b, 3], bmeta[b, 4]

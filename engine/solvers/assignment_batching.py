@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from engine.operations import EXTRACT, IMPLANT, SHIFT
+from engine.operations import EXTRACT, IMPLANT, SHIFT, clear_slots
 
 __all__ = ["batch_hops", "count_batched_slots"]
 
@@ -192,16 +192,7 @@ def emit_hop_batches(
     need = count_batched_slots(hop_ptr, batch_ptr, n_batches, batch_hop)
     if need > kind.shape[0]:
         return -need, 0
-    for i in range(n_prev):
-        for j in range(y_used[i]):
-            y_site[i, j] = -1
-            y_delta[i, j] = 0
-        for j in range(x_used[i]):
-            x_site[i, j] = -1
-            x_delta[i, j] = 0
-        kind[i] = 0
-        y_used[i] = 0
-        x_used[i] = 0
+    clear_slots(n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
     n = 0
     n_steps = 0
     for b in range(n_batches):

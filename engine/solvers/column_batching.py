@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from engine.operations import EXTRACT, IMPLANT, SHIFT
+from engine.operations import EXTRACT, IMPLANT, SHIFT, clear_slots
 from engine.solvers.redrec_solve import HORIZONTAL
 
 __all__ = ["batch_segments", "count_slots"]
@@ -142,20 +142,7 @@ def batch_segments(
     need = count_slots(seg, n_seg, mv, wide)
     if need > kind.shape[0]:
         return -need
-    for i in range(n_prev):
-        ys = y_site[i]
-        dy = y_delta[i]
-        for j in range(y_used[i]):
-            ys[j] = -1
-            dy[j] = 0
-        xs = x_site[i]
-        dx = x_delta[i]
-        for j in range(x_used[i]):
-            xs[j] = -1
-            dx[j] = 0
-        kind[i] = 0
-        y_used[i] = 0
-        x_used[i] = 0
+    clear_slots(n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
     n = 0
     for s in range(n_seg):
         k, a, b, m0, m1 = seg[s, 0], seg[s, 1], seg[s, 2], seg[s, 3], seg[s, 4]

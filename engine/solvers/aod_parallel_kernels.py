@@ -1078,6 +1078,19 @@ def plan_rect(
     return OK, nb, n_steps, n_slots
 
 
+
+@njit(cache=True, nogil=True)
+def _write_tones(n, t, shift, i0, i1, start, sign, moves, site, delta):
+    """Tones ``i0..i1-1`` of batch slot ``t`` into row ``n``: each started at ``start[i]`` and moves one site
+    per SHIFT slot in direction ``sign[i]`` for ``moves[i]`` slots, then waits. Returns the tone count."""
+    for i in range(i0, i1):
+        moved = min(t - 1, moves[i]) if t > 0 else 0
+        if moved < 0:
+            moved = 0
+        site[n, i - i0] = start[i] + sign[i] * moved
+        delta[n, i - i0] = sign[i] if (shift and t <= moves[i]) else 0
+    return i1 - i0
+
 @njit(cache=True, nogil=True)
 def emit_batches(
     bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray,
@@ -1105,35 +1118,12 @@ def emit_batches(
             else:
                 kind[n] = SHIFT
             # internal rows -> y (x if transposed), internal columns -> x (y if transposed)
-            for i in range(a0, a1):
-                moved = min(t - 1, brm[i]) if t > 0 else 0
-                if moved < 0:
-                    moved = 0
-                site = brow[i] + brs[i] * moved
-                d = brs[i] if (kind[n] == SHIFT and t <= brm[i]) else 0
-                if transposed:
-                    x_site[n, i - a0] = site
-                    x_delta[n, i - a0] = d
-                else:
-                    y_site[n, i - a0] = site
-                    y_delta[n, i - a0] = d
-            for i in range(b0, b1):
-                moved = min(t - 1, bcm[i]) if t > 0 else 0
-                if moved < 0:
-                    moved = 0
-                site = bcol[i] + bcs[i] * moved
-                d = bcs[i] if (kind[n] == SHIFT and t <= bcm[i]) else 0
-                if transposed:
-                    y_site[n, i - b0] = site
-                    y_delta[n, i - b0] = d
-                else:
-                    x_site[n, i - b0] = site
-                    x_delta[n, i - b0] = d
+            shift = kind[n] == SHIFT
             if transposed:
-                x_used[n] = a1 - a0
-                y_used[n] = b1 - b0
+                x_used[n] = _write_tones(n, t, shift, a0, a1, brow, brs, brm, x_site, x_delta)
+                y_used[n] = _write_tones(n, t, shift, b0, b1, bcol, bcs, bcm, y_site, y_delta)
             else:
-                y_used[n] = a1 - a0
-                x_used[n] = b1 - b0
+                y_used[n] = _write_tones(n, t, shift, a0, a1, brow, brs, brm, y_site, y_delta)
+                x_used[n] = _write_tones(n, t, shift, b0, b1, bcol, bcs, bcm, x_site, x_delta)
             n += 1
     return n

@@ -180,6 +180,24 @@ def count_batched_slots(hop_ptr: np.ndarray, batch_ptr: np.ndarray, n_batches: i
     return n
 
 
+
+@njit(cache=True, nogil=True)
+def _axis_tones(n, t, at, shift, m, order, hop_ptr, cells, axis, site, delta):
+    """The tones of one axis (``axis`` 0: rows, 1: columns) of batch slot ``t`` into row ``n``: one tone per
+    distinct starting row (column) of the hops in ``order``; returns how many."""
+    count = 0
+    for i in range(m):
+        k = order[i]
+        p0 = hop_ptr[k]
+        if i > 0 and cells[p0, axis] == cells[hop_ptr[order[i - 1]], axis]:
+            continue
+        ln = hop_ptr[k + 1] - p0 - 1
+        q = min(at, ln)
+        site[n, count] = cells[p0 + q, axis]
+        delta[n, count] = cells[p0 + q + 1, axis] - cells[p0 + q, axis] if (shift and t <= ln) else 0
+        count += 1
+    return count
+
 @njit(cache=True, nogil=True)
 def emit_hop_batches(
     hop_ptr: np.ndarray, cells: np.ndarray, batch_ptr: np.ndarray, n_batches: int, batch_hop: np.ndarray,
@@ -232,28 +250,9 @@ def emit_hop_batches(
                 at = l_max
             # atoms of a relay along a row share its row tone (and along a column its column tone): the
             # only atoms that start in the same row (column) are such partners
-            ny_t = 0
-            for i in range(m):
-                k = order_r[i]
-                p0 = hop_ptr[k]
-                if i > 0 and cells[p0, 0] == cells[hop_ptr[order_r[i - 1]], 0]:
-                    continue
-                ln = hop_ptr[k + 1] - p0 - 1
-                q = min(at, ln)
-                y_site[n, ny_t] = cells[p0 + q, 0]
-                y_delta[n, ny_t] = cells[p0 + q + 1, 0] - cells[p0 + q, 0] if (kind[n] == SHIFT and t <= ln) else 0
-                ny_t += 1
-            nx_t = 0
-            for i in range(m):
-                k = order_c[i]
-                p0 = hop_ptr[k]
-                if i > 0 and cells[p0, 1] == cells[hop_ptr[order_c[i - 1]], 1]:
-                    continue
-                ln = hop_ptr[k + 1] - p0 - 1
-                q = min(at, ln)
-                x_site[n, nx_t] = cells[p0 + q, 1]
-                x_delta[n, nx_t] = cells[p0 + q + 1, 1] - cells[p0 + q, 1] if (kind[n] == SHIFT and t <= ln) else 0
-                nx_t += 1
+            shift = kind[n] == SHIFT
+            ny_t = _axis_tones(n, t, at, shift, m, order_r, hop_ptr, cells, 0, y_site, y_delta)
+            nx_t = _axis_tones(n, t, at, shift, m, order_c, hop_ptr, cells, 1, x_site, x_delta)
             y_used[n] = ny_t
             x_used[n] = nx_t
             if kind[n] == SHIFT:

@@ -21,7 +21,7 @@ Rules (``docs/ARCHITECTURE.md``; the crossed-AOD model is worked through in ``ao
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,7 +46,6 @@ class PlanReport:
     max_steps_per_atom: int = 0
     max_pickups_per_atom: int = 0
     target_reached: bool = False
-    notes: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, int | bool]:
         return {

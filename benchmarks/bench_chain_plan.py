@@ -1,0 +1,60 @@
+"""Modules III and IV for the 1x64 -> 32 chain, out of the loop: exact-1d solve + batch, lookup and render per
+waveform slot, and the lookup table's size, over random instances at loading 0.6.
+
+    .venv/bin/python benchmarks/bench_chain_plan.py [--instances N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from engine.config import load_config
+from engine.solvers import Solver
+from engine.targets import build_target
+from engine.waveforms import WaveformBank
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--instances", type=int, default=2000)
+    args = parser.parse_args()
+    config = load_config("examples/chain-1x64.yaml")
+    bank = WaveformBank(config)
+    solver = Solver(nx=64, ny=1, algorithm="exact-1d", trap_source="aod")
+    target = build_target(config.target, nx=64, ny=1)
+    keys = np.zeros(bank.max_keys(64), np.int64)
+    out = np.zeros((64 * bank.slot_samples, 1), np.int16)
+    rng = np.random.default_rng(1)
+    instances = [occ for occ in (rng.random((1, 64)) < 0.6 for _ in range(args.instances)) if occ.sum() >= target.sum()]
+    # planning alone, back to back (caches warm, as after the engine's rehearsal)
+    plan_s = []
+    for occ in instances:
+        t0 = time.perf_counter()
+        solver.solve_moves(occ, target)
+        solver.batch()
+        plan_s.append(time.perf_counter() - t0)
+    # then each plan's lookup and render (a render of a plan evicts much of the cache between instances)
+    lookup_s, render_s = [], []
+    for occ in instances:
+        solver.solve_moves(occ, target)
+        plan = solver.batch()
+        n = len(plan.operations)
+        if n == 0:
+            continue
+        t0 = time.perf_counter()
+        bank.lookup(plan.operations, 0, n, keys)
+        lookup_s.append((time.perf_counter() - t0) / n)
+        t0 = time.perf_counter()
+        bank.render(plan.operations, 0, n, out)
+        render_s.append((time.perf_counter() - t0) / n)
+    us = lambda v, q: float(np.percentile(v, q)) * 1e6  # noqa: E731
+    print(f"exact-1d solve + batch: median {us(plan_s, 50):.2f} us, p99 {us(plan_s, 99):.2f} us ({len(plan_s)} instances)")
+    print(f"lookup per slot: median {us(lookup_s, 50):.3f} us; render per slot: median {us(render_s, 50):.2f} us")
+    print(f"lookup table: {bank.table_bytes} bytes")
+
+
+if __name__ == "__main__":
+    main()

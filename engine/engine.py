@@ -355,6 +355,16 @@ class EngineThread:
     def __enter__(self) -> EngineThread:
         return self.start()
 
+    @property
+    def config(self) -> SystemConfig | None:
+        """The engine's configuration (``None`` before ``start``)."""
+        return self.engine.config if self.engine is not None else None
+
+    @property
+    def has_trigger_input(self) -> bool:
+        """Whether the engine can wait for a hardware trigger (``Engine.wait_trigger``)."""
+        return hasattr(self.engine, "wait_trigger")
+
     def __exit__(self, *exc: object) -> None:
         self.close()
 

@@ -19,11 +19,12 @@ import os
 import signal
 import socket
 import sys
+from functools import partial
 from pathlib import Path
 
 from engine.config import ConfigError, SystemConfig, load_config
 
-__all__ = ["DEFAULT_CONFIG", "add_parser", "is_loopback", "main"]
+__all__ = ["DEFAULT_CONFIG", "add_parser", "build_engine", "engine_cpu_arg", "engine_host_factory", "is_loopback", "main"]
 
 #: The config ``llrs serve`` uses without ``--config``: the paper's 1x64 chain (the fastest to compile and run).
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "examples" / "chain-1x64.yaml"
@@ -57,24 +58,56 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # t
     p.add_argument("--idle", action="store_true", help="do not start shots at once; wait for a command")
     p.add_argument("--no-dashboard", action="store_true", help="serve the API only")
     p.add_argument("--cors-origin", action="append", default=[], help="allow browsers on this origin to call the API (repeatable)")
+    p.add_argument("--engine", choices=("process", "thread"), default="process",
+                   help="run the engine in a process of its own (default: its latency does not suffer from API "
+                   "traffic) or on a thread of the server's process")
+    p.add_argument("--engine-cpu", type=engine_cpu_arg, default="auto",
+                   help="core to pin the engine process to, the server keeping the others: 'auto' (default: the "
+                   "last core when there are two or more), a core number, or 'none'")
     p.set_defaults(func=main)
     return p
 
 
-def _engine_thread(config: SystemConfig):  # noqa: ANN202 - composition helper
-    """The engine on the configured devices: ``drivers.factory.open_devices`` where it exists (hardware or
-    simulation by ``config.devices``), else the simulated lab."""
-    from engine.engine import Engine, EngineThread
+def build_engine(config: SystemConfig):  # noqa: ANN201 - engine.engine.Engine, imported lazily
+    """The engine on the devices ``config.devices`` names (hardware or simulation, ``drivers.factory``).
 
-    def build() -> Engine:
-        try:
-            from drivers.factory import open_devices
-        except ImportError:
-            from drivers.sim.lab import build_sim_lab as open_devices
-        devices, lab = open_devices(config)
-        return Engine(config, devices, lab=lab)
+    Module-level so that an engine process can be told to run it (``functools.partial(build_engine, config)``
+    pickles)."""
+    from drivers.factory import open_devices
+    from engine.engine import Engine
 
-    return EngineThread(build)
+    devices, lab = open_devices(config)
+    return Engine(config, devices, lab=lab)
+
+
+def engine_host_factory(*, in_process: bool, cpu: int | None):  # noqa: ANN201 - Callable[[SystemConfig], host]
+    """How the service builds an engine for a configuration: in a process of its own pinned to ``cpu``
+    (the default; see ``engine.process``) or on a thread of this process (``--engine thread``)."""
+    from engine.engine import EngineThread
+    from engine.process import EngineProcess
+
+    def host(config: SystemConfig):  # noqa: ANN202
+        build = partial(build_engine, config)
+        return EngineProcess(build, cpu=cpu) if in_process else EngineThread(build)
+
+    return host
+
+
+def engine_cpu_arg(value: str) -> int | None:
+    from engine.process import default_engine_cpu
+
+    if value == "auto":
+        return default_engine_cpu()
+    if value == "none":
+        return None
+    try:
+        cpu = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--engine-cpu takes a core number, 'auto' or 'none', not {value!r}") from None
+    allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    if cpu not in allowed:
+        raise argparse.ArgumentTypeError(f"--engine-cpu {cpu}: this process may use cores {allowed}")
+    return cpu
 
 
 def _say(text: str) -> None:
@@ -127,11 +160,12 @@ def main(args: argparse.Namespace) -> int:
     devices = f"camera {config.devices.camera}, AWG {config.devices.awg}"
     _say(f"llrs serve: config '{config.name}' ({config.array.nx}x{config.array.ny} traps, {devices}); "
          "starting the engine (compiling kernels: the first start takes longer)...")
+    factory = engine_host_factory(in_process=args.engine == "process", cpu=args.engine_cpu)
     service = LabService(
-        engine_thread=_engine_thread(config),
+        engine_thread=factory(config),
         store=RunStore(args.runs_dir),
         pause_s=args.pause,
-        engine_factory=_engine_thread,
+        engine_factory=factory,
         config=config,
     )
     dashboard = None

@@ -1,6 +1,7 @@
 """The lab service: the one command interface the REST API and the dashboard both drive.
 
-It wraps an ``EngineThread`` (which owns the engine and its devices) and adds what a lab server needs around it:
+It wraps an engine host, an ``EngineThread`` or an ``EngineProcess`` (``engine.process``: the engine in its
+own process, on its own core, which is how ``llrs serve`` runs it), and adds what a lab server needs around it:
 continuous shots with a pause between them, one-off shots with a per-shot configuration, validated config
 changes applied between shots, the shot history in memory and on disk, and listeners for live data.
 
@@ -27,12 +28,14 @@ import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import Future
+from operator import methodcaller
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import ValidationError
 
 from engine.config import SystemConfig, deep_merge
+from engine.process import EngineProcess, EngineProcessDied, shot_with_frame
 from engine.records import Outcome, ShotRecord
 from server.calibration import psf_calibration, threshold_calibration
 from server.models import DevicesOut, StatusOut, shot_summary
@@ -40,6 +43,8 @@ from server.runstore import RunStore
 
 if TYPE_CHECKING:
     from engine.engine import EngineThread
+
+    EngineHost = EngineThread | EngineProcess
 
 __all__ = ["CalibrationConflict", "ConfigRejected", "DevicesUnavailable", "LabService", "NotArmed", "deep_merge"]
 
@@ -73,9 +78,12 @@ class DevicesUnavailable(RuntimeError):
 
 
 class _NoEngine:
-    """Stands in for the engine thread while the devices cannot be opened: every command says why."""
+    """Stands in for the engine while the devices cannot be opened (or its process died): every command
+    says why."""
 
-    engine = None
+    config = None
+    has_trigger_input = False
+    alive = False
 
     def __init__(self, reason: str) -> None:
         self.reason = reason
@@ -107,21 +115,21 @@ def _validate(data: Any) -> SystemConfig:
 
 
 class LabService:
-    """Owns the engine thread, the continuous runner, the shot history and the run store."""
+    """Owns the engine host, the continuous runner, the shot history and the run store."""
 
     def __init__(
         self,
         *,
-        engine_thread: EngineThread,
+        engine_thread: EngineHost,
         store: RunStore | None = None,
         pause_s: float = 0.5,
         history: int = 2000,
-        engine_factory: Callable[[SystemConfig], EngineThread] | None = None,
+        engine_factory: Callable[[SystemConfig], EngineHost] | None = None,
         config: SystemConfig | None = None,
     ) -> None:
         """``engine_factory`` (with ``config``, the configuration ``engine_thread`` was built for) lets the
         service survive devices that cannot be opened and re-open devices when ``devices`` changes."""
-        self._et: EngineThread | _NoEngine = engine_thread
+        self._et: EngineHost | _NoEngine = engine_thread
         self._factory = engine_factory
         self._initial_config = config
         self._store = store
@@ -153,10 +161,12 @@ class LabService:
 
     def start(self, *, run: bool = False) -> LabService:
         """Build the engine (compiles every kernel), then start the runner; ``run`` starts continuous shots."""
-        # The engine thread shares the GIL with the API's and the dashboard's threads. A thread that wants the
+        # An engine *thread* shares the GIL with the API's and the dashboard's threads. A thread that wants the
         # GIL waits up to the switch interval (5 ms by default) for the holder to let go, so request handling
-        # could add milliseconds to a cycle; 0.2 ms bounds that wait at a small cost in throughput.
-        sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
+        # could add milliseconds to a cycle; 0.2 ms bounds that wait at a small cost in throughput. An engine
+        # process has an interpreter of its own.
+        if not isinstance(self._et, EngineProcess):
+            sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
         try:
             self._et.start()  # type: ignore[union-attr]
         except Exception as err:
@@ -166,9 +176,7 @@ class LabService:
             self._config = self._initial_config
             self._fault = self._et.reason
         else:
-            engine = self._et.engine
-            assert engine is not None
-            self._config = engine.config
+            self._config = self._et.config
         if self._store is not None:
             self._store.note_config(self._config)
         self._runner.start()
@@ -190,7 +198,8 @@ class LabService:
             self._store.close()
 
     def add_listener(self, callback: Callable[[ShotRecord], None]) -> None:
-        """``callback(record)`` after every shot, on the engine thread: keep it short (hand work elsewhere)."""
+        """``callback(record)`` after every shot, on the thread that asked for it (the runner, or a request's):
+        keep it short (hand work elsewhere)."""
         self._listeners.append(callback)
 
     def remove_listener(self, callback: Callable[[ShotRecord], None]) -> None:
@@ -251,7 +260,7 @@ class LabService:
         ``NotArmed`` says so and nothing changes.
         """
         self._require_engine()
-        if self.trigger_source == "hardware" and not hasattr(self._et.engine, "wait_trigger"):
+        if self.trigger_source == "hardware" and not self._et.has_trigger_input:
             raise NotArmed(
                 "loop.trigger is 'hardware' but these devices have no trigger input; "
                 "set loop.trigger to 'software' and send POST /api/trigger"
@@ -373,6 +382,7 @@ class LabService:
             return self._by_id.get(shot_id)
 
     def status(self) -> StatusOut:
+        self._notice_dead_engine()
         cfg = self.config
         with self._state_lock:
             last = self._history[-1] if self._history else None
@@ -442,11 +452,32 @@ class LabService:
     # -- internals --------------------------------------------------------------------------------------------
 
     def _require_engine(self) -> None:
+        self._notice_dead_engine()
         if isinstance(self._et, _NoEngine):
             raise DevicesUnavailable(self._et.reason)
 
+    def _call(self, command: Callable[[Any], Any]) -> Any:
+        """``command(engine)`` on the engine, waited for; an engine process that died says so as
+        ``DevicesUnavailable`` (503 over REST) rather than as an internal error."""
+        try:
+            return self._et.submit(command).result()
+        except EngineProcessDied:
+            self._notice_dead_engine()
+            raise DevicesUnavailable(getattr(self._et, "reason", "the engine process died")) from None
+
+    def _notice_dead_engine(self) -> None:
+        """An engine process that died becomes a ``_NoEngine`` with its reason: the server reports it and a
+        configuration applied later starts a new engine (``_apply`` re-opens)."""
+        if not isinstance(self._et, _NoEngine) and not getattr(self._et, "alive", True):
+            reason = f"{getattr(self._et, '_dead', None) or 'the engine process is gone'}"
+            reason += "; apply a configuration (PUT /api/config) to start a new engine"
+            self._et.close()
+            self._et = _NoEngine(reason)
+            with self._state_lock:
+                self._fault = reason
+
     def _reopen(self, config: SystemConfig) -> None:
-        """Open the devices ``config`` names on a new engine thread; keep the old one if they do not open."""
+        """Open the devices ``config`` names on a new engine host; keep the old one if they do not open."""
         assert self._factory is not None
         thread = self._factory(config)
         try:
@@ -461,12 +492,13 @@ class LabService:
             self._fault = None
 
     def _apply(self, config: SystemConfig, *, remember: bool = True) -> None:
-        """Apply on the engine thread (between shots); raise ``ConfigRejected`` if the engine refuses it.
+        """Apply on the engine (between shots); raise ``ConfigRejected`` if the engine refuses it.
 
         With an engine factory, a change of ``devices`` (or devices that failed to open before) re-opens the
-        devices on a new engine thread; if they do not open, the running engine and config stay."""
+        devices on a new engine host; if they do not open, the running engine and config stay."""
         if self._store is not None:
             self._store.note_config(config)
+        self._notice_dead_engine()
         reopen = isinstance(self._et, _NoEngine) or (
             self._factory is not None and self._config is not None and config.devices != self._config.devices
         )
@@ -476,7 +508,7 @@ class LabService:
                 self._config = config
             return
         try:
-            self._et.submit(lambda engine: engine.apply(config)).result()
+            self._call(methodcaller("apply", config))
         except (ValueError, KeyError, NotImplementedError) as err:
             raise ConfigRejected([{"loc": ["body"], "msg": f"{type(err).__name__}: {err}", "type": "engine_refused"}]) from None
         if remember:
@@ -505,7 +537,7 @@ class LabService:
     def _acquire(self, n: int, what: str) -> np.ndarray:
         done = self._busy(what)
         try:
-            frames = self._et.submit(lambda engine: engine.acquire_images(n)).result()
+            frames = self._call(methodcaller("acquire_images", n))
         finally:
             done()
         return np.asarray(frames)
@@ -524,17 +556,12 @@ class LabService:
             return dict(result)
 
     def _one_shot(self, what: str) -> ShotRecord:
+        """One shot on the engine, then the bookkeeping and the listeners on this (the caller's) thread."""
         done = self._busy(what)
         try:
-            return self._et.submit(self._shot_on_engine).result()
+            record, frame = self._call(shot_with_frame)
         finally:
             done()
-
-    def _shot_on_engine(self, engine: Any) -> ShotRecord:
-        """On the engine thread: one shot, its last frame, then the bookkeeping and the listeners."""
-        record = engine.run_shot()
-        last_frame = getattr(engine, "last_frame", None)
-        frame = last_frame() if last_frame is not None else None
         self._on_shot(record, frame)
         return record
 
@@ -564,8 +591,8 @@ class LabService:
                 pass
 
     def _wait_hardware_trigger(self) -> bool:
-        """Armed on a hardware trigger: wait a little for the line on the engine thread; True if it fired."""
-        fired = self._et.submit(lambda engine: engine.wait_trigger(timeout_s=0.2)).result()
+        """Armed on a hardware trigger: wait a little for the line on the engine; True if it fired."""
+        fired = self._call(methodcaller("wait_trigger", timeout_s=0.2))
         return bool(fired)
 
     def _run_loop(self) -> None:
@@ -588,10 +615,11 @@ class LabService:
                         continue  # nothing fired: look again at once (the wait itself paced us)
                 except NotArmed:
                     continue
-                except Exception as err:  # the engine thread died or raised: stop and report it
+                except Exception as err:  # the engine died or raised: stop and report it
                     with self._state_lock:
                         self._fault = f"{type(err).__name__}: {err}"
                         self._armed = False
                     self._want_run.clear()
+                    self._notice_dead_engine()
             if self._want_run.is_set():
                 self._closing.wait(self.pause_s)

@@ -1,0 +1,109 @@
+"""The engine in its own process (``engine.process.EngineProcess``): real shots on the simulated lab, errors
+and results across the boundary, a build that fails, a child that dies, and the service on top of it."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from functools import partial
+from operator import methodcaller
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from engine.config import SystemConfig, load_config
+from engine.devices import DeviceError
+from engine.process import EngineProcess, EngineProcessDied, default_engine_cpu, shot_with_frame
+from engine.records import Outcome
+from server.app import create_app
+from server.serve import build_engine, engine_host_factory
+from server.service import LabService
+
+CHAIN = Path(__file__).resolve().parents[1] / "examples" / "chain-1x64.yaml"
+
+
+def chain_config(**sim: object) -> SystemConfig:
+    config = load_config(CHAIN)
+    return config.model_copy(update={"sim": config.sim.model_copy(update={"lossless": True, **sim})})
+
+
+@pytest.fixture(scope="module")
+def engine_process():
+    with EngineProcess(partial(build_engine, chain_config())) as host:
+        yield host
+
+
+def test_shots_run_in_the_child_and_come_back_with_their_frame(engine_process: EngineProcess) -> None:
+    assert engine_process.config is not None and engine_process.config.name == "chain-1x64"
+    assert engine_process.has_trigger_input
+    assert engine_process.alive
+    records = [engine_process.submit(shot_with_frame).result(timeout=60) for _ in range(5)]
+    ids = [record.shot_id for record, _ in records]
+    assert ids == sorted(ids) and len(set(ids)) == 5  # commands run one after another
+    for record, frame in records:
+        assert record.outcome in (Outcome.SUCCESS, Outcome.UNSOLVABLE)
+        assert record.truth["target_filled"] == (record.outcome is Outcome.SUCCESS)  # the child's world judged it
+        assert isinstance(frame, np.ndarray) and frame.dtype == np.uint16 and frame.shape == (16, 1024)
+
+
+def test_errors_cross_the_boundary_with_their_type(engine_process: EngineProcess) -> None:
+    with pytest.raises(ValueError, match="n >= 1"):
+        engine_process.submit(methodcaller("acquire_images", 0)).result(timeout=30)
+    with pytest.raises(Exception, match="pickle"):  # a lambda cannot be sent to another process
+        engine_process.submit(lambda engine: engine.config).result(timeout=30)
+    frames = engine_process.submit(methodcaller("acquire_images", 2)).result(timeout=30)
+    assert frames.shape == (2, 16, 1024)  # the engine is still there after both errors
+
+
+def test_a_build_that_fails_raises_its_own_error_in_start() -> None:
+    data = chain_config().model_dump()
+    data["devices"]["awg"] = "spectrum"  # no Spectrum driver here
+    host = EngineProcess(partial(build_engine, SystemConfig.model_validate(data)))
+    with pytest.raises(DeviceError):
+        host.start(timeout_s=120)
+    assert not host.alive
+
+
+@pytest.mark.skipif(default_engine_cpu() is None, reason="needs two cores to pin the engine")
+def test_pinning_keeps_the_server_off_the_engine_core() -> None:
+    cpu = default_engine_cpu()
+    before = os.sched_getaffinity(0)
+    host = EngineProcess(partial(build_engine, chain_config()), cpu=cpu).start(timeout_s=120)
+    try:
+        assert os.sched_getaffinity(host._process.pid) == {cpu}
+        assert cpu not in os.sched_getaffinity(0)
+    finally:
+        host.close()
+    assert os.sched_getaffinity(0) == before
+
+
+def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers() -> None:
+    config = chain_config()
+    factory = engine_host_factory(in_process=True, cpu=None)
+    service = LabService(engine_thread=factory(config), engine_factory=factory, config=config, pause_s=0.0)
+    service.start()
+    try:
+        with TestClient(create_app(service=service)) as client:
+            assert client.post("/api/shots").status_code == 200
+            old = service._et
+            os.kill(old._process.pid, signal.SIGKILL)
+            deadline = time.monotonic() + 10
+            while old.alive and time.monotonic() < deadline:
+                time.sleep(0.05)
+            with pytest.raises(EngineProcessDied, match="signal 9"):
+                old.submit(shot_with_frame).result(timeout=10)
+            r = client.post("/api/shots")
+            assert r.status_code == 503 and "signal 9" in r.json()["detail"]
+            status = client.get("/api/status").json()
+            assert status["state"] == "fault" and "PUT /api/config" in status["reason"]
+            assert client.get("/api/shots").json()["total"] >= 1  # the history survived
+            # applying a configuration starts a new engine process
+            assert client.put("/api/config", json=config.model_dump(mode="json")).status_code == 200
+            assert client.get("/api/status").json()["state"] != "fault"
+            assert client.post("/api/shots").status_code == 200
+            assert service._et is not old and service._et.alive
+    finally:
+        service.close()

@@ -1,10 +1,12 @@
 """``llrs bench load``: does the engine's latency hold while people use the server?
 
-The server (engine + API, in this process, as ``llrs serve`` runs it) runs shots continuously on the
-simulated lab. First it runs with nobody connected (the idle baseline), then while a client process opens
-20 websocket subscriptions to ``/api/live`` (one of them never reads) and polls the REST API at a fixed
-total rate (status, the shot list, single shots). Reported: the software latency (II + III + IV.lookup +
-IV.render, per rearranging cycle) idle and under load, and the API's own latency percentiles.
+The server (API in this process, the engine in a process of its own pinned to a core of its own, as
+``llrs serve`` runs it; ``--engine thread`` puts it on a thread of this process instead) runs shots
+continuously on the simulated lab. First it runs with nobody connected (the idle baseline), then while a
+client process opens 20 websocket subscriptions to ``/api/live`` (one of them never reads) and polls the
+REST API at a fixed total rate (status, the shot list, single shots). Reported: the software latency
+(II + III + IV.lookup, and with IV.render; per rearranging cycle) idle and under load, and the API's own
+latency percentiles.
 
 Loopback only, and bounded: each phase lasts ``--seconds`` and stops by itself; the clients run in a
 separate process so that their own Python work does not share the server's interpreter.
@@ -27,15 +29,10 @@ import numpy as np
 
 from engine.config import load_config
 from engine.records import ShotRecord
-from server.bench_runtime import REPO, SOFTWARE_STAGES
+from server.bench_runtime import REPO, SOFTWARE_STAGES_WITH_RENDER, software_latencies_us
+from server.serve import engine_cpu_arg
 
-__all__ = ["register", "run_load_clients", "software_latencies_us"]
-
-
-def software_latencies_us(records: list[ShotRecord]) -> list[float]:
-    return [
-        sum(c.stage_s.get(s, 0.0) for s in SOFTWARE_STAGES) * 1e6 for r in records for c in r.cycles if c.n_slots > 0
-    ]
+__all__ = ["register", "run_load_bench", "run_load_clients"]
 
 
 def _pct(values: list[float]) -> dict[str, float]:
@@ -137,22 +134,17 @@ def run_load_clients(base: str, seconds: float, rate_hz: float, n_ws: int) -> di
 # --- the server side ---------------------------------------------------------------------------------------
 
 
-def _serve(config_path: str, runs_dir: str):  # noqa: ANN202 - returns (service, server, thread, url)
+def _serve(config_path: str, runs_dir: str, *, in_process: bool, cpu: int | None):  # noqa: ANN202 - (service, server, thread, url)
     import uvicorn
 
-    from drivers.sim.lab import build_sim_lab
-    from engine.engine import Engine, EngineThread
     from server.app import create_app
     from server.runstore import RunStore
+    from server.serve import engine_host_factory
     from server.service import LabService
 
     config = load_config(config_path)
-
-    def build() -> Engine:
-        devices, lab = build_sim_lab(config)
-        return Engine(config, devices, lab=lab)
-
-    service = LabService(engine_thread=EngineThread(build), store=RunStore(runs_dir), pause_s=0.0)
+    host = engine_host_factory(in_process=in_process, cpu=cpu)
+    service = LabService(engine_thread=host(config), store=RunStore(runs_dir), pause_s=0.0)
     service.start(run=False)
     app = create_app(service=service)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning"))
@@ -172,9 +164,12 @@ def _collect(service, seconds: float) -> list[ShotRecord]:  # noqa: ANN001
     return list(records)
 
 
-def run_load_bench(config_path: str, seconds: float, rate_hz: float, n_ws: int) -> dict[str, Any]:
+def run_load_bench(
+    config_path: str, seconds: float, rate_hz: float, n_ws: int, *, in_process: bool = True, cpu: int | None = None
+) -> dict[str, Any]:
+    """Idle phase, then the load phase, each ``seconds`` long; the figures ``llrs bench load --json`` prints."""
     with tempfile.TemporaryDirectory(prefix="llrs-load-") as runs:
-        service, server, thread, base = _serve(config_path, runs)
+        service, server, thread, base = _serve(config_path, runs, in_process=in_process, cpu=cpu)
         try:
             service.run()
             _collect(service, min(2.0, seconds / 4))  # warm up: caches, the run file, the first shots
@@ -192,27 +187,35 @@ def run_load_bench(config_path: str, seconds: float, rate_hz: float, n_ws: int) 
             server.should_exit = True
             thread.join(timeout=10)
             service.close()
-    idle_us, load_us = software_latencies_us(idle), software_latencies_us(loaded)
-    result = {
+    result: dict[str, Any] = {
         "config": str(config_path),
+        "engine": f"process on core {cpu}" if in_process and cpu is not None else "process" if in_process else "thread",
         "seconds_per_phase": seconds,
-        "idle": {"shots": len(idle), "software_latency_us": _pct(idle_us)},
-        "load": {"shots": len(loaded), "software_latency_us": _pct(load_us), "clients": clients},
     }
-    p_idle, p_load = result["idle"]["software_latency_us"]["p99"], result["load"]["software_latency_us"]["p99"]
-    result["p99_growth"] = (p_load / p_idle - 1.0) if p_idle and np.isfinite(p_idle) else float("nan")
+    for phase, records in (("idle", idle), ("load", loaded)):
+        result[phase] = {
+            "shots": len(records),
+            "software_latency_us": _pct(software_latencies_us(records)),
+            "software_latency_with_render_us": _pct(software_latencies_us(records, SOFTWARE_STAGES_WITH_RENDER)),
+        }
+    result["load"]["clients"] = clients
+    for key, growth in (("software_latency_us", "p99_growth"), ("software_latency_with_render_us", "p99_growth_with_render")):
+        p_idle, p_load = result["idle"][key]["p99"], result["load"][key]["p99"]
+        result[growth] = (p_load / p_idle - 1.0) if p_idle and np.isfinite(p_idle) else float("nan")
     return result
 
 
 def _print(r: dict[str, Any]) -> None:
-    print(f"config {r['config']}, {r['seconds_per_phase']:g} s per phase")
-    for phase in ("idle", "load"):
-        s = r[phase]["software_latency_us"]
-        print(f"{phase:5s}: {r[phase]['shots']:4d} shots, {s['n']:4d} rearranging cycles; software latency median "
-              f"{s['median']:.1f} us, p99 {s['p99']:.1f} us, max {s['max']:.1f} us")
+    print(f"config {r['config']}, engine: {r['engine']}, {r['seconds_per_phase']:g} s per phase")
+    for key, what, growth in (("software_latency_us", "II+III+IV.lookup", "p99_growth"),
+                              ("software_latency_with_render_us", "... + IV.render", "p99_growth_with_render")):
+        for phase in ("idle", "load"):
+            s = r[phase][key]
+            print(f"{phase:5s}: {r[phase]['shots']:4d} shots, {s['n']:4d} rearranging cycles; {what} median "
+                  f"{s['median']:.1f} us, p99 {s['p99']:.1f} us, max {s['max']:.1f} us")
+        print(f"p99 growth under load ({what}): {100 * r[growth]:+.1f} %")
     c = r["load"]["clients"]
     a = c["api_ms"]
-    print(f"p99 growth under load: {100 * r['p99_growth']:+.1f} %")
     print(f"API: {c['requests']} requests at {c['rate_hz']:.0f}/s, {c['errors']} errors; latency median "
           f"{a['median']:.2f} ms, p95 {a['p95']:.2f} ms, p99 {a['p99']:.2f} ms, max {a['max']:.2f} ms")
     print(f"websockets: {c['ws_clients']} clients (one never reads), "
@@ -220,7 +223,9 @@ def _print(r: dict[str, Any]) -> None:
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    result = run_load_bench(args.config, args.seconds, args.rate, args.ws)
+    result = run_load_bench(
+        args.config, args.seconds, args.rate, args.ws, in_process=args.engine == "process", cpu=args.engine_cpu
+    )
     print(json.dumps(result)) if args.json else _print(result)
     return 0
 
@@ -231,6 +236,10 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seconds", type=float, default=20.0, help="length of each phase (default 20 s)")
     p.add_argument("--rate", type=float, default=200.0, help="REST requests per second in total (default 200)")
     p.add_argument("--ws", type=int, default=20, help="websocket subscribers, one of which never reads (default 20)")
+    p.add_argument("--engine", choices=("process", "thread"), default="process",
+                   help="the engine in a process of its own (default, as llrs serve) or on a thread of the server's")
+    p.add_argument("--engine-cpu", type=engine_cpu_arg, default="auto",
+                   help="core for the engine process ('auto': the last of two or more, a number, or 'none')")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd)
 

@@ -1,9 +1,11 @@
 """``llrs bench runtime``: the paper's Table 1, reproduced on the simulated lab, with worst cases.
 
 For each of the paper's three problems it runs shots in the loop (loss on, as in the paper) and reports
-every stage's mean, std, median, p99 and max next to the paper's mean, plus the **software latency**: the
-host's own work from image in memory to the first two segments ready for upload (II + III + IV.lookup +
-IV.render), which is what this project controls. Device times (exposure, readout, upload, playback) are the
+every stage's mean, std, median, p99 and max next to the paper's mean, plus the **software latency**, the
+host's own work from image in memory to the waveform slots of the first two segments looked up
+(II + III + IV.lookup: the paper's modules II-IV without its upload, whose copying our IV.render does), and
+the same **with IV.render**, the assembly of those two segments' samples in the upload buffers (memory
+bound: 2 x 401 kB for 32x64). Device times (exposure, readout, upload, playback) are the
 simulated lab's models, reported for completeness; on hardware they are the devices' own.
 
 Only cycles that rearranged atoms count for stages III-V (a cycle that finds the target filled or the
@@ -24,7 +26,8 @@ from engine.config import SystemConfig, load_config
 from engine.records import ShotRecord
 from engine.timing import PAPER_TABLE1_MS, STAGES
 
-__all__ = ["PROBLEMS", "SOFTWARE_STAGES", "register", "runtime_figures", "run_problem"]
+__all__ = ["PROBLEMS", "SOFTWARE_STAGES", "SOFTWARE_STAGES_WITH_RENDER", "register", "runtime_figures", "run_problem",
+           "software_latencies_us"]
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -35,8 +38,15 @@ PROBLEMS: dict[str, str] = {
     "32x64": "examples/grid-32x64.yaml",
 }
 
-#: The host's work from image in memory to the first two segments rendered (upload excluded).
-SOFTWARE_STAGES: tuple[str, ...] = ("II.detect", "II.threshold", "III.solve", "III.batch", "IV.lookup", "IV.render")
+#: The host's work from image in memory to the first two segments' slots looked up (upload excluded).
+SOFTWARE_STAGES: tuple[str, ...] = ("II.detect", "II.threshold", "III.solve", "III.batch", "IV.lookup")
+#: ... and then rendered into the upload buffers.
+SOFTWARE_STAGES_WITH_RENDER: tuple[str, ...] = (*SOFTWARE_STAGES, "IV.render")
+
+
+def software_latencies_us(records: list[ShotRecord], stages: tuple[str, ...] = SOFTWARE_STAGES) -> list[float]:
+    """The sum of ``stages`` (us) for every cycle that rearranged atoms."""
+    return [sum(c.stage_s.get(s, 0.0) for s in stages) * 1e6 for r in records for c in r.cycles if c.n_slots > 0]
 
 
 def _stats_us(values_s: list[float]) -> dict[str, float]:
@@ -57,7 +67,6 @@ def _stats_us(values_s: list[float]) -> dict[str, float]:
 def runtime_figures(records: list[ShotRecord], problem: str | None = None) -> dict[str, Any]:
     """Per-stage statistics (us) and the software latency from shot records."""
     samples: dict[str, list[float]] = {s: [] for s in STAGES}
-    software: list[float] = []
     to_playback: list[float] = []
     slots: list[int] = []
     underruns = 0
@@ -68,7 +77,6 @@ def runtime_figures(records: list[ShotRecord], problem: str | None = None) -> di
                 if stage in ("I.acquire", "II.detect", "II.threshold") or rearranged:
                     samples[stage].append(seconds)
             if rearranged:
-                software.append(sum(cycle.stage_s.get(s, 0.0) for s in SOFTWARE_STAGES))
                 to_playback.append(cycle.latency_s)
                 slots.append(cycle.n_slots)
                 underruns += cycle.underruns
@@ -78,15 +86,17 @@ def runtime_figures(records: list[ShotRecord], problem: str | None = None) -> di
         entry = _stats_us(samples[stage])
         entry["paper_mean"] = paper[stage] * 1e3 if stage in paper else None
         stages[stage] = entry
-    sw = _stats_us(software)
+    sw = _stats_us([v / 1e6 for v in software_latencies_us(records)])
+    sw_render = _stats_us([v / 1e6 for v in software_latencies_us(records, SOFTWARE_STAGES_WITH_RENDER)])
     return {
         "shots": len(records),
         "successes": sum(1 for r in records if r.truth.get("target_filled", r.success)),
-        "rearranging_cycles": len(software),
+        "rearranging_cycles": sw["n"],
         "slots_median": float(np.median(slots)) if slots else float("nan"),
         "underruns": underruns,
         "stages": stages,
         "software_latency_us": {k: sw[k] for k in ("mean", "median", "p99", "max")},
+        "software_latency_with_render_us": {k: sw_render[k] for k in ("mean", "median", "p99", "max")},
         "latency_to_playback_us": {k: v for k, v in _stats_us(to_playback).items() if k != "n"},
     }
 
@@ -121,9 +131,11 @@ def _print(figures: dict[str, dict[str, Any]]) -> None:
             paper = f"{s['paper_mean']:10.1f}" if s["paper_mean"] is not None else f"{'-':>10s}"
             print(f"{stage:13s} {s['mean']:10.1f} {s['std']:9.1f} {s['median']:10.1f} {s['p99']:10.1f} "
                   f"{s['max']:10.1f} {paper}")
-        sw = fig["software_latency_us"]
-        print(f"software latency (II + III + IV.lookup + IV.render): median {sw['median']:.1f} us, "
-              f"p99 {sw['p99']:.1f} us, max {sw['max']:.1f} us")
+        for key, what in (("software_latency_us", "II + III + IV.lookup"),
+                          ("software_latency_with_render_us", "II + III + IV.lookup + IV.render")):
+            sw = fig[key]
+            print(f"software latency ({what}): median {sw['median']:.1f} us, p99 {sw['p99']:.1f} us, "
+                  f"max {sw['max']:.1f} us")
 
 
 def plot_stacked(figures: dict[str, dict[str, Any]], path: str | Path) -> None:

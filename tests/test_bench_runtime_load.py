@@ -1,0 +1,62 @@
+"""``llrs bench runtime`` and ``llrs bench load`` on the 1D chain, briefly: the figures they print are there,
+consistent with the shot records they come from, and the load test really loads the server."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from server.bench_load import run_load_bench
+from server.bench_runtime import (
+    SOFTWARE_STAGES,
+    SOFTWARE_STAGES_WITH_RENDER,
+    problem_config,
+    run_problem,
+    runtime_figures,
+    software_latencies_us,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_runtime_figures_agree_with_the_records() -> None:
+    records = run_problem(problem_config("1x64", seed=3), shots=6)
+    fig = runtime_figures(records, "1x64")
+    assert fig["shots"] == 6
+    lookup = software_latencies_us(records)
+    with_render = software_latencies_us(records, SOFTWARE_STAGES_WITH_RENDER)
+    assert fig["rearranging_cycles"] == len(lookup) == sum(c.n_slots > 0 for r in records for c in r.cycles) > 0
+    assert np.all(np.asarray(with_render) > np.asarray(lookup))  # rendering takes time
+    assert fig["software_latency_us"]["median"] == pytest.approx(np.median(lookup))
+    assert fig["software_latency_with_render_us"]["median"] == pytest.approx(np.median(with_render))
+    for stage in SOFTWARE_STAGES:
+        entry = fig["stages"][stage]
+        assert entry["n"] > 0 and entry["median"] <= entry["p99"] <= entry["max"]
+    assert fig["stages"]["II.detect"]["paper_mean"] == 259.0
+
+
+def test_runtime_cli_prints_one_json_object_per_problem() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "server.cli", "bench", "runtime", "--problems", "1x64", "--shots", "3", "--json"],
+        cwd=REPO, capture_output=True, text=True, timeout=300, check=True,
+    ).stdout
+    figures = json.loads(out)
+    assert set(figures) == {"1x64"}
+    assert set(figures["1x64"]["software_latency_us"]) == {"mean", "median", "p99", "max"}
+
+
+def test_load_bench_loads_the_server_and_reports_both_phases() -> None:
+    result = run_load_bench(str(REPO / "examples/chain-1x64.yaml"), seconds=1.5, rate_hz=40, n_ws=3, cpu=None)
+    assert result["engine"] == "process"
+    for phase in ("idle", "load"):
+        assert result[phase]["shots"] > 0
+        assert result[phase]["software_latency_us"]["n"] > 0
+    clients = result["load"]["clients"]
+    assert clients["errors"] == 0 and clients["requests"] >= 30
+    assert clients["ws_clients"] == 3 and clients["ws_messages_per_reading_client"] > 0
+    assert np.isfinite(result["p99_growth"])

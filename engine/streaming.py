@@ -286,6 +286,8 @@ class Streamer:
             timer.start()
         count0 = self._render_segment(ops, 0, timer)
         self._start_upload(0, count0)
+        if timer is not None:
+            timer.lap("IV.upload")
         count1 = self._render_segment(ops, 1, timer)  # while segment 0 uploads
         self._finish_upload(ops, 0, count0, n_segments)
         self._start_upload(1, count1)

@@ -14,9 +14,12 @@ it are fast-forwarded in O(1), so seconds of idle cost nothing.
 
 Memory writes cost device time on the clock (``clock.advance``): an upload ``nbytes / upload_bytes_per_s +
 |N(0, upload_jitter_s)|`` (+ the ``upload_delay_s`` fault knob), a step write ``step_write_s``. A write takes
-effect when it completes; playback before that sees the old contents. Samples are decoded during the upload
-and the wall time that takes is charged against the modelled upload time, so the simulator's own work does
-not make the host look late (if decoding takes longer than the modelled upload, the upload takes that long).
+effect when it completes; playback before that sees the old contents. In ``realtime`` mode samples are
+decoded during the upload and the wall time that takes is charged against the modelled upload time, so the
+simulator's own work does not make the host look late (if decoding takes longer than the modelled upload, the
+upload takes that long). In ``simulated`` mode the clock stands still while the simulator works, and a
+segment is decoded when it first plays: decoding ~400 kB of samples at upload would evict the CPU caches in
+the middle of the host's latency-critical path, which a real card's DMA does not do.
 """
 
 from __future__ import annotations
@@ -161,7 +164,8 @@ class SimAWG:
             now = self.clock.now_s()
             t_begin = max(now, self._dma_free_s)
             seg = _Segment(samples.copy(), t_begin, t_begin)
-            self._decoded(seg)
+            if self.clock.mode == "realtime":
+                self._decoded(seg)
             cost = (
                 samples.nbytes / self.awg_config.upload_bytes_per_s
                 + abs(float(self.rng.normal(0.0, self.awg_config.upload_jitter_s)))

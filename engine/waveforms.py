@@ -128,8 +128,8 @@ _RUN0 = 1 << 44
 # rows of the shape table passed to the kernels
 _S, _G, _CUM, _ENV_OUT, _ENV_IN = range(5)
 
-# lookup error codes (returned as code + 16 * slot)
-_E_CHAIN_KIND, _E_SITE, _E_ORDER, _E_DELTA, _E_EDGE, _E_CROSS, _E_KIND = range(1, 8)
+# lookup error codes (returned as code + 16 * slot); the last two are about the call, not a slot
+_E_CHAIN_KIND, _E_SITE, _E_ORDER, _E_DELTA, _E_EDGE, _E_CROSS, _E_KIND, _E_ARRAY, _E_KEYS = range(1, 10)
 _ERRORS = {
     _E_CHAIN_KIND: "a chain (trap_source 'aod') slot must be SHIFT or IDLE",
     _E_SITE: "a tone site is outside the axis",
@@ -399,24 +399,81 @@ def _tone(kind, k, n_sites, cyc, amp, phi, shp, scale, inv_q, out):
 
 
 @njit(cache=True, nogil=True)
-def _key(axis, kind, site, n_max, row_of):
-    code = (axis * N_KINDS + kind) * n_max + site
-    r = row_of[code]
-    return r if r >= 0 else -(code + 1)
+def _lookup_chain(kind, x_site, x_delta, first, count, keys, key_of):
+    """Chain (``trap_source = "aod"``) slots ``first..first+count-1`` to keys; returns 0, or ``code + 16 * slot``
+    on an invalid slot or ``_E_ARRAY`` / ``_E_KEYS`` when the plan's row or ``keys`` does not fit the bank.
+
+    Slot j's keys start at ``j * (2 + nx)``: ``[n_movers, 0, one key per mover...]`` (see ``_lookup_slm``
+    for the key encoding). A mover's kind (inner, head, tail, isolated; up or down) depends on the tones
+    before and after it in the slot's list, which the loop carries along (each tone is read once) and
+    combines with arithmetic and selects rather than branches: which variant a mover is follows the atoms,
+    not a pattern the branch predictor could learn.
+    """
+    nx = x_site.shape[1]
+    stride = 2 + nx
+    if nx != key_of.shape[1]:
+        return _E_ARRAY
+    if keys.shape[0] < count * stride:
+        return _E_KEYS
+    for j in range(count):
+        i = first + j
+        kb = j * stride
+        kd = kind[i]
+        keys[kb] = 0
+        keys[kb + 1] = 0
+        if kd == IDLE:
+            continue
+        if kd != SHIFT:
+            return _E_CHAIN_KIND + 16 * i
+        m = 0
+        kp, dp = -2, 0  # the tone before (none yet: a site no tone can start from or reach)
+        k, d = x_site[i, 0], x_delta[i, 0]
+        for t in range(nx):
+            if k < 0:
+                break
+            kn, dn = (x_site[i, t + 1], x_delta[i, t + 1]) if t + 1 < nx else (-1, 0)  # the tone after
+            if k >= nx:
+                return _E_SITE + 16 * i
+            if d < -1 or d > 1:
+                return _E_DELTA + 16 * i
+            if k + d < 0 or k + d >= nx:
+                return _E_EDGE + 16 * i
+            if k <= kp:
+                return _E_ORDER + 16 * i
+            if k + d <= kp + dp:
+                return _E_CROSS + 16 * i
+            if d != 0:
+                up = d > 0
+                # head: the site ahead is not a source, so it is entered and fades out
+                head = (kn if up else kp) != k + d
+                # tail: no tone behind moves in the same way, so the vacated site fades in
+                tail = ((kp if up else kn) != k - d) | ((dp if up else dn) != d)
+                # INNER_UP, INNER_DOWN, HEAD_UP, ..., ISO_DOWN in that order: + 2 head + 4 tail + 1 down
+                keys[kb + 2 + m] = key_of[INNER_UP + 2 * head + 4 * tail + (1 - up), k]
+                m += 1
+            kp, dp = k, d
+            k, d = kn, dn
+        keys[kb] = m
+    return 0
 
 
 @njit(cache=True, nogil=True)
-def _lookup(kind, x_site, x_delta, y_site, y_delta, first, count, keys, stride, row_of, prow_of, nx, ny, n_max,
-            chain):
-    """Resolve slots ``first..first+count-1`` to keys; returns 0, or ``code + 16 * slot`` on an invalid slot.
+def _lookup_slm(kind, x_site, x_delta, y_site, y_delta, first, count, keys, key_of, prow_of, nx, ny):
+    """slm slots ``first..first+count-1`` to keys; returns 0, or ``code + 16 * slot`` on an invalid slot
+    or ``_E_ARRAY`` / ``_E_KEYS`` when the plan's array or ``keys`` does not fit the bank.
 
-    Slot j's keys start at ``j * stride``: ``[n_ch0, n_ch1, ch0 keys..., ch1 keys...]``. A key in
+    Slot j's keys start at ``j * (2 + nx + ny)``: ``[n_ch0, n_ch1, ch0 keys..., ch1 keys...]``. A key in
     ``[0, _RUN0)`` is a table row; a negative key ``-(code + 1)`` is synthesized directly,
-    ``code = (axis * N_KINDS + kind) * n_max + site``; a key ``>= _RUN0`` is a run of consecutive sites
-    ``[a, b)`` of one (axis, kind) with a prefix block (slm only): ``_RUN0 + (p_b << _RUN_SHIFT) + p_a``, with
-    ``p_a``, ``p_b`` rows of the prefix table. A run replaces two or more single keys, so a slot never has more
-    keys than tones and ``stride`` stays a bound.
+    ``code = (axis * N_KINDS + kind) * n_max + site`` (``key_of`` holds both, by ``[axis * N_KINDS + kind,
+    site]``); a key ``>= _RUN0`` is a run of consecutive sites ``[a, b)`` of one (axis, kind) with a prefix
+    block: ``_RUN0 + (p_b << _RUN_SHIFT) + p_a``, with ``p_a``, ``p_b`` rows of the prefix table. A run
+    replaces two or more single keys, so a slot never has more keys than tones and the stride stays a bound.
     """
+    stride = 2 + nx + ny
+    if x_site.shape[1] != nx or y_site.shape[1] != ny:
+        return _E_ARRAY
+    if keys.shape[0] < count * stride:
+        return _E_KEYS
     for j in range(count):
         i = first + j
         kb = j * stride
@@ -424,48 +481,6 @@ def _lookup(kind, x_site, x_delta, y_site, y_delta, first, count, keys, stride, 
         keys[kb] = 0
         keys[kb + 1] = 0
         m = 0
-        if chain:
-            if kd == IDLE:
-                continue
-            if kd != SHIFT:
-                return _E_CHAIN_KIND + 16 * i
-            for t in range(nx):
-                k = x_site[i, t]
-                if k < 0:
-                    break
-                if k >= nx:
-                    return _E_SITE + 16 * i
-                d = x_delta[i, t]
-                if d < -1 or d > 1:
-                    return _E_DELTA + 16 * i
-                if k + d < 0 or k + d >= nx:
-                    return _E_EDGE + 16 * i
-                if t > 0:
-                    kp = x_site[i, t - 1]
-                    if k <= kp:
-                        return _E_ORDER + 16 * i
-                    if k + d <= kp + x_delta[i, t - 1]:
-                        return _E_CROSS + 16 * i
-                if d == 0:
-                    continue
-                # head: the site ahead is not a source, so it is entered and fades out
-                ta = t + d
-                head = not (0 <= ta < nx and x_site[i, ta] == k + d)
-                # tail: no tone behind moves in the same way, so the vacated site fades in
-                tb = t - d
-                tail = not (0 <= tb < nx and x_site[i, tb] == k - d and x_delta[i, tb] == d)
-                if head and tail:
-                    ck = ISO_UP
-                elif head:
-                    ck = HEAD_UP
-                elif tail:
-                    ck = TAIL_UP
-                else:
-                    ck = INNER_UP
-                keys[kb + 2 + m] = _key(0, ck if d > 0 else ck + 1, k, n_max, row_of)
-                m += 1
-            keys[kb] = m
-            continue
         if kd == IDLE:
             continue
         if kd != EXTRACT and kd != SHIFT and kd != IMPLANT:
@@ -510,15 +525,15 @@ def _lookup(kind, x_site, x_delta, y_site, y_delta, first, count, keys, stride, 
                     run_a = k
                     run_len = 1
                     run_kind = tk
-                    keys[kb + 2 + m] = _key(axis, tk, k, n_max, row_of)
+                    keys[kb + 2 + m] = key_of[axis * N_KINDS + tk, k]
                     m += 1
             keys[kb + axis] = m - m_axis
     return 0
 
 
 @njit(cache=True, nogil=True)
-def _failsafe_keys(kind, x_site, x_delta, y_site, y_delta, i, keys, row_of, prow_of, nx, ny, n_max):
-    """Keys (one slot, as ``_lookup``) of steady full tones where slm slot ``i`` leaves them."""
+def _failsafe_keys(kind, x_site, x_delta, y_site, y_delta, i, keys, key_of, prow_of, nx, ny):
+    """Keys (one slot, as ``_lookup_slm``) of steady full tones where slm slot ``i`` leaves them."""
     keys[0] = 0
     keys[1] = 0
     kd = kind[i]
@@ -549,7 +564,7 @@ def _failsafe_keys(kind, x_site, x_delta, y_site, y_delta, i, keys, row_of, prow
                 run_m = m
                 run_a = end
                 run_len = 1
-                keys[2 + m] = _key(axis, STATIC, end, n_max, row_of)
+                keys[2 + m] = key_of[axis * N_KINDS + STATIC, end]
                 m += 1
         keys[axis] = m - m_axis
 
@@ -738,14 +753,16 @@ class WaveformBank:
                     rows += int(self._n_sites[a])
                     budget -= size
         self.table = np.zeros((rows, n), dtype=np.int16)
-        self._row_of = np.full(2 * N_KINDS * self.n_max, -1, dtype=np.int64)
+        # the key of every (axis, kind, site), by [axis * N_KINDS + kind, site]: its table row, or -(code + 1)
+        # to synthesize it at render time (code = (axis * N_KINDS + kind) * n_max + site)
+        self._key_of = -1 - np.arange(2 * N_KINDS * self.n_max, dtype=np.int64).reshape(2 * N_KINDS, self.n_max)
         self.tabulated = [(self.axes[a], KIND_NAMES[k]) for a, k, _ in chosen]
         for a, k, r0 in chosen:
             ns = int(self._n_sites[a])
             for site in range(ns):
                 _tone(k, site, ns, self._cyc[a], self._amp[a], self._phi[a], self._shp, self.scale,
                       self._inv_q[a], self.table[r0 + site])
-                self._row_of[(a * N_KINDS + k) * self.n_max + site] = r0 + site
+                self._key_of[a * N_KINDS + k, site] = r0 + site
         self.table_bytes = int(self.table.nbytes)
 
         # prefix tables (slm): for every tabulated (axis, kind) block, in the same order, while the rest of the
@@ -796,26 +813,40 @@ class WaveformBank:
         return int(n_slots) * self.stride
 
     def lookup(self, ops: Operations, first: int, count: int, keys: np.ndarray) -> None:
-        """Stage IV.lookup: resolve slots ``first..first+count-1`` to table keys in ``keys`` (no allocation)."""
+        """Stage IV.lookup: resolve slots ``first..first+count-1`` to table keys in ``keys`` (no allocation).
+
+        A chain plan is ~10 slots that resolve in ~1 us, so the call itself must stay small: one kernel with
+        few arguments (the constant tables fixed at construction), which also checks the plan's array and the
+        size of ``keys``; only the slot range needs ``ops.n`` and is checked here.
+        """
         if first < 0 or count < 0 or first + count > ops.n:
             raise ValueError(f"slots {first}..{first + count - 1} are outside the {ops.n} slots of the plan")
-        if keys.shape[0] < count * self.stride:
-            raise ValueError(
-                f"keys buffer holds {keys.shape[0]} keys; {count} slots need max_keys({count}) = {count * self.stride}"
-            )
-        err = _lookup(ops.kind, ops.x_site, ops.x_delta, ops.y_site, ops.y_delta, first, count, keys, self.stride,
-                      self._row_of, self._prow_of, self.nx, self.ny, self.n_max, self.chain)
+        if self.chain:
+            err = _lookup_chain(ops.kind, ops.x_site, ops.x_delta, first, count, keys, self._key_of)
+        else:
+            err = _lookup_slm(ops.kind, ops.x_site, ops.x_delta, ops.y_site, ops.y_delta, first, count, keys,
+                              self._key_of, self._prow_of, self.nx, self.ny)
         if err:
             self._last_keys = None
-            i = err // 16
-            try:
-                where = ops.describe(i)
-            except ValueError:
-                where = f"slot {i}: kind {int(ops.kind[i])}"
-            raise ValueError(f"invalid waveform slot: {_ERRORS.get(err % 16, 'error')} ({where})")
+            self._lookup_failed(err, ops, count, keys)
         self._last_keys = keys
         self._last_first = first
         self._last_count = count
+
+    def _lookup_failed(self, err: int, ops: Operations, count: int, keys: np.ndarray) -> None:
+        """Raise the ``ValueError`` that the lookup kernel's error code ``err`` stands for."""
+        code, i = err % 16, err // 16
+        if code == _E_ARRAY:
+            raise ValueError(f"the plan is for a {ops.ny} x {ops.nx} array; this bank is for {self.ny} x {self.nx}")
+        if code == _E_KEYS:
+            raise ValueError(
+                f"keys buffer holds {keys.shape[0]} keys; {count} slots need max_keys({count}) = {count * self.stride}"
+            )
+        try:
+            where = ops.describe(i)
+        except ValueError:
+            where = f"slot {i}: kind {int(ops.kind[i])}"
+        raise ValueError(f"invalid waveform slot: {_ERRORS.get(code, 'error')} ({where})")
 
     def _check_out(self, out: np.ndarray, n_samples: int) -> None:
         if (out.dtype != np.int16 or out.ndim != 2 or out.shape[0] < n_samples or out.shape[1] != self.n_channels
@@ -844,7 +875,7 @@ class WaveformBank:
         if not 0 <= i < ops.n:
             raise ValueError(f"slot {i} is outside the {ops.n} slots of the plan")
         _failsafe_keys(ops.kind, ops.x_site, ops.x_delta, ops.y_site, ops.y_delta, i, self._fs_keys,
-                       self._row_of, self._prow_of, self.nx, self.ny, self.n_max)
+                       self._key_of, self._prow_of, self.nx, self.ny)
         _render(self._fs_keys, 1, self.stride, self.n_channels, self._base, self.q, self.table, self.prefix,
                 self._n_sites, self._cyc, self._amp, self._phi, self._shp, self.n_max, self.scale, self._inv_q,
                 self._acc, self._scratch, out)
@@ -874,8 +905,8 @@ class WaveformBank:
         """The int16 table row of ``(axis, kind, site)`` (units of ``q[axis]`` counts), or None when that
         row is synthesized at render time."""
         a = self.axes.index(axis)
-        r = self._row_of[(a * N_KINDS + kind) * self.n_max + site]
-        return None if r < 0 else self.table[r]
+        key = self._key_of[a * N_KINDS + kind, site]
+        return None if key < 0 else self.table[key]
 
     def synthesize(self, axis: str, kind: int, site: int, *, exact: bool = False) -> np.ndarray:
         """One tone from the numba tone kernel: int16 table units (as direct synthesis at render time), or

@@ -6,9 +6,11 @@ the ROI (before binning); a frame binned by ``(bx, by)`` has its own pixels, and
 maps to frame coordinate ``(x + 0.5) / bx - 0.5``. In frame pixels the PSF is a Gaussian of
 ``sigma / bx`` by ``sigma / by`` integrated over a unit pixel, exactly as on the sensor.
 
-Weights layout (what the detection kernels read): ``pixel_idx int64[n_traps, box*box]`` holds row-major
-flat indices into the frame, ``weights float32[n_traps, box*box]`` the matching weights. Box pixels that fall
-outside the frame keep a valid index (clipped) and weight 0, so the kernel never needs a bounds check.
+Weights layout: ``pixel_idx int64[n_traps, box*box]`` holds row-major flat indices into the frame,
+``weights float32[n_traps, box*box]`` the matching weights. Box pixels that fall outside the frame keep a valid
+index (clipped) and weight 0. This is the general description that calibration and the numpy reference read;
+the detection kernel reads boxes of contiguous pixel rows that ``engine.imaging.BoxLayout`` derives from it
+once per configuration (edge boxes shifted inside the frame, off-frame weights dropped).
 
 Why the weights are the PSF normalised to sum 1: for an empty trap the noise is the same in every pixel
 (background and read noise), and the linear estimator of an atom's brightness with the best signal-to-noise

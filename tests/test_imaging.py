@@ -12,17 +12,20 @@ from drivers.sim.camera import SimCamera
 from drivers.sim.clock import SimClock
 from engine.config import SystemConfig
 from engine.imaging import (
+    SIMD_LANES,
+    BoxLayout,
     Detector,
+    box_sums,
     calibrate_threshold,
     fit_psf,
     model_threshold,
     psf_from_config,
     threshold,
     threshold_reference,
-    weighted_sums,
     weighted_sums_reference,
 )
 from engine.imaging_calibration import Population, min_error_threshold
+from engine.psf import box_pixels
 
 LOADING = 0.6
 
@@ -61,14 +64,53 @@ def detect_all(detector: Detector, frames: np.ndarray) -> tuple[np.ndarray, np.n
     return occupancy, counts
 
 
-def test_weighted_sums_matches_reference() -> None:
-    rng = np.random.default_rng(0)
-    image = rng.integers(0, 65536, size=(64, 96), dtype=np.uint16)
-    idx = rng.integers(0, image.size, size=(300, 49)).astype(np.int64)
-    weights = rng.random((300, 49)).astype(np.float32)
-    out = np.empty(300, dtype=np.float32)
-    weighted_sums(image, idx, weights, out)
-    np.testing.assert_allclose(out, weighted_sums_reference(image, idx, weights), rtol=1e-5)
+def random_boxes(shape: tuple[int, int], box_px: int, n_traps: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``box_pixels`` boxes around random centres, some reaching past every frame edge and corner, with random
+    weights (0 off the frame, as ``PsfModel`` has them)."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    reach = box_px / 2
+    centres = rng.uniform((-reach + 1, -reach + 1), (w + reach - 1, h + reach - 1), size=(n_traps, 2))
+    centres[:8] = [(-1.2, h / 2), (w + 0.4, h / 2), (w / 2, -0.9), (w / 2, h + 0.3), (0, 0), (w, 0), (0, h), (w, h)]
+    _, _, inside, pixel_idx = box_pixels(centres, box_px, shape)
+    weights = (rng.random(pixel_idx.shape) * inside.reshape(pixel_idx.shape)).astype(np.float32)
+    return pixel_idx, weights
+
+
+@pytest.mark.parametrize(
+    ("shape", "box_px"),
+    [((64, 96), 7), ((64, 96), 9), ((5, 40), 7), ((30, 6), 7), ((1, 12), 3)],
+    ids=["7x7", "9x9-two-vectors-per-row", "frame-lower-than-box", "frame-narrower-than-box", "one-row-frame"],
+)
+def test_box_sums_match_reference_inside_and_across_every_edge(shape: tuple[int, int], box_px: int) -> None:
+    pixel_idx, weights = random_boxes(shape, box_px, 300, seed=0)
+    image = np.random.default_rng(1).integers(0, 65536, size=shape, dtype=np.uint16)
+    boxes = BoxLayout.from_pixels(pixel_idx, weights, shape, box_px)
+    assert boxes.weights.shape[2] % SIMD_LANES == 0 and np.all(np.diff(boxes.origin_px) >= 0)
+    out = np.full(300, np.nan, dtype=np.float32)
+    box_sums(image, boxes.origin_px, boxes.trap, boxes.weights, out)
+    np.testing.assert_allclose(out, weighted_sums_reference(image, pixel_idx, weights), rtol=1e-5)
+
+
+def test_box_layout_rejects_pixels_that_are_no_box() -> None:
+    pixel_idx = np.array([[0, 1, 96 * 10]])  # rows 0 and 10 of a 96 px wide frame: no 7x7 box holds both
+    with pytest.raises(ValueError, match="trap 0"):
+        BoxLayout.from_pixels(pixel_idx, np.ones((1, 3), dtype=np.float32), (64, 96), 7)
+
+
+def test_box_layout_rejects_frames_smaller_than_one_box_row() -> None:
+    with pytest.raises(ValueError, match="too small"):  # a 1x5 px frame cannot hold one row of SIMD_LANES px
+        BoxLayout.from_pixels(np.array([[0, 1, 2]]), np.ones((1, 3), dtype=np.float32), (1, 5), 3)
+
+
+@pytest.mark.parametrize("binning", [(1, 1), (2, 2), (1, 2)])
+def test_detector_sums_match_reference(binning: tuple[int, int]) -> None:
+    config = grid_config(binning=binning, origin_px=(1.4, 2.0))  # first row and column of boxes cross the edge
+    frames, _ = simulate(config, 1, seed=9)
+    detector = Detector(config)
+    detector.sum(frames[0])
+    expected = weighted_sums_reference(frames[0], detector.psf.pixel_idx, detector.psf.weights)
+    np.testing.assert_allclose(detector.counts, expected, rtol=1e-5)
 
 
 def test_threshold_matches_reference_for_flat_and_grid_outputs() -> None:

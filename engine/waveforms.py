@@ -754,8 +754,9 @@ class WaveformBank:
                     budget -= size
         self.table = np.zeros((rows, n), dtype=np.int16)
         # the key of every (axis, kind, site), by [axis * N_KINDS + kind, site]: its table row, or -(code + 1)
-        # to synthesize it at render time (code = (axis * N_KINDS + kind) * n_max + site)
-        self._key_of = -1 - np.arange(2 * N_KINDS * self.n_max, dtype=np.int64).reshape(2 * N_KINDS, self.n_max)
+        # to synthesize it at render time (code = (axis * N_KINDS + kind) * n_max + site); int32, so a lookup
+        # after a render (which evicts the caches) reads half the cache lines
+        self._key_of = -1 - np.arange(2 * N_KINDS * self.n_max, dtype=np.int32).reshape(2 * N_KINDS, self.n_max)
         self.tabulated = [(self.axes[a], KIND_NAMES[k]) for a, k, _ in chosen]
         for a, k, r0 in chosen:
             ns = int(self._n_sites[a])

@@ -3,9 +3,11 @@
 Every planner has the same two-stage shape, timed separately by the engine as the paper's Table 1 does:
 ``solve_moves(occupancy, target)`` (stage III.solve: which atom goes where, raising ``UnsolvableError``)
 and ``batch()`` (stage III.batch: the ``Plan``, a view of the planner's own buffers, valid until the next
-solve). Planners allocate their buffers and compile their kernels in the constructor, so the hot path does
-neither. ``check_target(target)`` says up front, with a clear message, when a planner cannot handle a
-target, so a bad configuration is refused when it is applied rather than failing mid-shot.
+solve). A planner may batch inside ``solve_moves`` when one kernel call is cheaper than two (exact-1d: its
+III.batch only hands out the filled table, and III.solve holds both). Planners allocate their buffers and
+compile their kernels in the constructor, so the hot path does neither. ``check_target(target)`` says up
+front, with a clear message, when a planner cannot handle a target, so a bad configuration is refused when
+it is applied rather than failing mid-shot.
 
 ``solve(occupancy, target, algorithm=...)`` is the one-call convenience for scripts and tests.
 """

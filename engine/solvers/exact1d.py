@@ -55,9 +55,9 @@ def match_chain(
     t = 0
     for i in range(n):  # atoms[k] and sites[t] are overwritten until occupied / targeted
         atoms[k] = i
-        k += occ[i]
+        k += occ[i] != 0
         sites[t] = i
-        t += target[i]
+        t += target[i] != 0
     if k < t:
         return -1, 0
     e_max = k - t

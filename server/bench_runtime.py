@@ -8,6 +8,9 @@ the same **with IV.render**, the assembly of those two segments' samples in the 
 bound: 2 x 401 kB for 32x64). Device times (exposure, readout, upload, playback) are the
 simulated lab's models, reported for completeness; on hardware they are the devices' own.
 
+The engine runs on this process's main thread, pinned to one core as ``llrs serve`` pins its engine process
+(``--engine-cpu``), so the figures are those of the deployed layout.
+
 Only cycles that rearranged atoms count for stages III-V (a cycle that finds the target filled or the
 problem unsolvable stops after II).
 """
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -25,6 +29,7 @@ import numpy as np
 from engine.config import SystemConfig, load_config
 from engine.records import ShotRecord
 from engine.timing import PAPER_TABLE1_MS, STAGES
+from server.serve import engine_cpu_arg
 
 __all__ = ["PROBLEMS", "SOFTWARE_STAGES", "SOFTWARE_STAGES_WITH_RENDER", "register", "runtime_figures", "run_problem",
            "software_latencies_us"]
@@ -108,15 +113,24 @@ def problem_config(problem: str, *, seed: int | None = None) -> SystemConfig:
     return config
 
 
-def run_problem(config: SystemConfig, shots: int) -> list[ShotRecord]:
-    """Run ``shots`` shots of ``config`` on the simulated lab, in this thread (the engine's own loop)."""
+def run_problem(config: SystemConfig, shots: int, *, cpu: int | None = None) -> list[ShotRecord]:
+    """Run ``shots`` shots of ``config`` on the simulated lab, in this thread (the engine's own loop), pinned
+    to core ``cpu`` while it runs (as ``llrs serve`` pins its engine process; ``None``: not pinned)."""
     from drivers.sim.lab import build_sim_lab
     from engine.engine import Engine
 
     devices, lab = build_sim_lab(config)
     engine = Engine(config, devices, lab=lab)
-    engine.run_shot()  # warm caches (kernels are compiled already); not counted
-    return [engine.run_shot() for _ in range(shots)]
+    allowed = os.sched_getaffinity(0) if cpu is not None else None
+    try:
+        if cpu is not None:
+            os.sched_setaffinity(0, {cpu})
+        engine.run_shot()  # warm caches (kernels are compiled already); not counted
+        return [engine.run_shot() for _ in range(shots)]
+    finally:
+        if allowed is not None:
+            os.sched_setaffinity(0, allowed)
+        devices.close()
 
 
 def _print(figures: dict[str, dict[str, Any]]) -> None:
@@ -180,7 +194,7 @@ def _cmd(args: argparse.Namespace) -> int:
     figures: dict[str, dict[str, Any]] = {}
     for problem in problems:
         t0 = time.perf_counter()
-        records = run_problem(problem_config(problem, seed=args.seed), args.shots)
+        records = run_problem(problem_config(problem, seed=args.seed), args.shots, cpu=args.engine_cpu)
         figures[problem] = runtime_figures(records, problem)
         figures[problem]["wall_s"] = time.perf_counter() - t0
     if args.json:
@@ -197,6 +211,9 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shots", type=int, default=100, help="shots per problem (default 100)")
     p.add_argument("--problems", default=",".join(PROBLEMS), help=f"comma-separated subset of {', '.join(PROBLEMS)}")
     p.add_argument("--seed", type=int, default=1, help="seed of the simulated lab")
+    p.add_argument("--engine-cpu", type=engine_cpu_arg, default="auto",
+                   help="core to run the engine on, as llrs serve pins it ('auto': the last of two or more, a "
+                   "number, or 'none')")
     p.add_argument("--json", action="store_true", help="print one JSON object keyed by problem")
     p.add_argument("--plot", default=None, help="also write a stacked-bar PNG of the mean stage times here")
     p.set_defaults(func=_cmd)

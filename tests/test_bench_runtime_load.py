@@ -15,6 +15,7 @@ from server.bench_load import run_load_bench
 from server.bench_runtime import (
     SOFTWARE_STAGES,
     SOFTWARE_STAGES_WITH_RENDER,
+    plot_stacked,
     problem_config,
     run_problem,
     runtime_figures,
@@ -24,9 +25,11 @@ from server.bench_runtime import (
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_runtime_figures_agree_with_the_records() -> None:
+def test_runtime_figures_agree_with_the_records(tmp_path: Path) -> None:
     records = run_problem(problem_config("1x64", seed=3), shots=6)
     fig = runtime_figures(records, "1x64")
+    plot_stacked({"1x64": fig}, tmp_path / "table1.png")
+    assert (tmp_path / "table1.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert fig["shots"] == 6
     lookup = software_latencies_us(records)
     with_render = software_latencies_us(records, SOFTWARE_STAGES_WITH_RENDER)

@@ -177,6 +177,11 @@ class EngineProcess:
         self.close()
 
     @property
+    def pid(self) -> int | None:
+        """The engine process's id (``None`` before ``start``)."""
+        return self._process.pid if self._process is not None else None
+
+    @property
     def alive(self) -> bool:
         return self._process is not None and self._process.poll() is None and self._dead is None
 

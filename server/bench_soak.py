@@ -1,7 +1,8 @@
 """``llrs bench soak``: many shots through the whole server stack; memory must stay flat, every shot recorded.
 
-Runs the lab service (engine thread, continuous runner, run store writing HDF5) on the simulated lab with
-simulated time for ``--shots`` shots, sampling the process's resident memory as it goes. Reported: memory
+Runs the lab service (the engine in its own process as ``llrs serve`` runs it, or on a thread with ``--engine
+thread``; continuous runner; run store writing HDF5) on the simulated lab with simulated time for ``--shots``
+shots, sampling the resident memory of the server and engine processes together as it goes. Reported: memory
 after warm-up and at the end (the growth is what matters: a leak shows as a slope), shots per second, and
 the number of shots found in the run files afterwards, which must equal the number run.
 """
@@ -25,9 +26,9 @@ from server.bench_runtime import REPO
 __all__ = ["register", "rss_mb", "run_soak"]
 
 
-def rss_mb() -> float:
-    """Resident set size of this process in MiB (Linux /proc)."""
-    for line in Path("/proc/self/status").read_text().splitlines():
+def rss_mb(pid: int | str = "self") -> float:
+    """Resident set size of process ``pid`` (default: this one) in MiB (Linux /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     return float("nan")
@@ -41,22 +42,25 @@ def shots_on_disk(runs_dir: Path) -> int:
     return total
 
 
-def run_soak(config_path: str, shots: int, *, warmup: int, sample_every: int, progress: bool) -> dict[str, Any]:
-    from drivers.sim.lab import build_sim_lab
-    from engine.engine import Engine, EngineThread
+def run_soak(
+    config_path: str, shots: int, *, warmup: int, sample_every: int, progress: bool, in_process: bool = True
+) -> dict[str, Any]:
     from server.runstore import RunStore
+    from server.serve import engine_host_factory
     from server.service import LabService
 
     config = load_config(config_path)
     config = config.model_copy(update={"sim": config.sim.model_copy(update={"time": "simulated"})})
 
-    def build() -> Engine:
-        devices, lab = build_sim_lab(config)
-        return Engine(config, devices, lab=lab)
-
     with tempfile.TemporaryDirectory(prefix="llrs-soak-") as tmp:
         runs = Path(tmp)
-        service = LabService(engine_thread=EngineThread(build), store=RunStore(runs), pause_s=0.0)
+        host = engine_host_factory(in_process=in_process, cpu=None)(config)
+        service = LabService(engine_thread=host, store=RunStore(runs), pause_s=0.0)
+
+        def rss_total_mb() -> float:
+            pid = getattr(host, "pid", None)
+            return rss_mb() + (rss_mb(pid) if pid is not None else 0.0)
+
         done = threading.Event()
         count = [0]
         samples: list[tuple[int, float]] = []
@@ -67,7 +71,7 @@ def run_soak(config_path: str, shots: int, *, warmup: int, sample_every: int, pr
             outcomes[record.outcome.value] = outcomes.get(record.outcome.value, 0) + 1
             n = count[0]
             if n == warmup or n % sample_every == 0:
-                samples.append((n, rss_mb()))
+                samples.append((n, rss_total_mb()))
                 if progress:
                     print(f"  {n} shots, RSS {samples[-1][1]:.1f} MiB", flush=True)
             if n >= shots:
@@ -86,6 +90,7 @@ def run_soak(config_path: str, shots: int, *, warmup: int, sample_every: int, pr
     end = samples[-1][1] if samples else float("nan")
     return {
         "config": str(config_path),
+        "engine": "process" if in_process else "thread",
         "shots": count[0],
         "shots_on_disk": on_disk,
         "outcomes": outcomes,
@@ -100,7 +105,8 @@ def run_soak(config_path: str, shots: int, *, warmup: int, sample_every: int, pr
 
 def _cmd(args: argparse.Namespace) -> int:
     result = run_soak(args.config, args.shots, warmup=min(args.warmup, args.shots),
-                      sample_every=max(1, args.shots // 20), progress=not args.json)
+                      sample_every=max(1, args.shots // 20), progress=not args.json,
+                      in_process=args.engine == "process")
     if args.json:
         print(json.dumps(result))
     else:
@@ -115,5 +121,7 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=str(REPO / "examples/grid-16x32.yaml"), help="configuration (default 16x32)")
     p.add_argument("--shots", type=int, default=20000, help="number of shots (default 20000)")
     p.add_argument("--warmup", type=int, default=500, help="shots before the memory baseline (default 500)")
+    p.add_argument("--engine", choices=("process", "thread"), default="process",
+                   help="the engine in its own process (default, as llrs serve) or on a thread of the server's")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd)

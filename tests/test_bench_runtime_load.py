@@ -63,3 +63,14 @@ def test_load_bench_loads_the_server_and_reports_both_phases() -> None:
     assert clients["errors"] == 0 and clients["requests"] >= 30
     assert clients["ws_clients"] == 3 and clients["ws_messages_per_reading_client"] > 0
     assert np.isfinite(result["p99_growth"])
+
+
+def test_soak_records_every_shot_and_samples_both_processes() -> None:
+    from server.bench_soak import rss_mb, run_soak
+
+    result = run_soak(str(REPO / "examples/chain-1x64.yaml"), 40, warmup=10, sample_every=10, progress=False)
+    assert result["engine"] == "process"
+    assert result["shots"] == result["shots_on_disk"] >= 40
+    assert [n for n, _ in result["rss_samples"]] == [10, 20, 30, 40]
+    assert all(mb > rss_mb() for _, mb in result["rss_samples"])  # this process plus the engine's
+    assert sum(result["outcomes"].values()) == result["shots"]

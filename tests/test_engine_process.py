@@ -107,3 +107,16 @@ def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers(
             assert service._et is not old and service._et.alive
     finally:
         service.close()
+
+
+def test_an_injected_fault_crosses_the_boundary_and_clears(engine_process: EngineProcess) -> None:
+    config = chain_config()
+    data = config.model_dump()
+    data["sim"]["faults"]["camera"] = "timeout"
+    broken = SystemConfig.model_validate(data)
+    engine_process.submit(methodcaller("apply", broken)).result(timeout=60)
+    record, _ = engine_process.submit(shot_with_frame).result(timeout=60)
+    assert record.outcome is Outcome.FAULT and "no frame within" in (record.fault or "")
+    engine_process.submit(methodcaller("apply", config)).result(timeout=60)
+    record, _ = engine_process.submit(shot_with_frame).result(timeout=60)
+    assert record.outcome in (Outcome.SUCCESS, Outcome.UNSOLVABLE) and record.fault is None

@@ -192,6 +192,9 @@ def main(args: argparse.Namespace) -> int:
         if dashboard_port is not None:
             _say(f"  dashboard   http://{shown_host}:{dashboard_port}/")
         _say(f"  API         {api_url}/   (docs {api_url}/docs, live cycles ws://{shown_host}:{api_port}/api/live)")
+        where = "a thread of this process" if args.engine == "thread" else "its own process" + (
+            f", pinned to core {args.engine_cpu} (the server keeps the others)" if args.engine_cpu is not None else "")
+        _say(f"  engine      {where}")
         _say(f"  run files   {Path(args.runs_dir).resolve()}/")
         _say(f"  token       {'required on mutating routes (LLRS_TOKEN)' if token else 'none (loopback only)'}")
         _say(f"  shots       {'idle: POST /api/run or the dashboard starts them' if args.idle else 'running continuously'}")

@@ -51,3 +51,10 @@ def test_bad_config_is_a_clear_error(tmp_path: Path) -> None:
     bad.write_text("sim: {loading_probability: 3}\n")
     r = _serve("--config", str(bad), "--port", "0")
     assert r.returncode == 2 and "sim.loading_probability" in r.stderr
+
+
+@pytest.mark.parametrize(("value", "message"), [("4096", "this process may use cores"), ("fast", "core number, 'auto' or 'none'")])
+def test_bad_engine_core_is_a_clear_error(value: str, message: str) -> None:
+    r = _serve("--engine-cpu", value, "--port", "0")
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert "starting the engine" not in r.stdout

@@ -113,6 +113,27 @@ def _flat(c: int, r: int, transposed: bool, nx_real: int) -> int:
     return r * nx_real + c
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _put_tone(site: np.ndarray, sign: np.ndarray, moves: np.ndarray, n: int, at: int, sg: int, m: int) -> int:
+    """Append a tone to a batch's row (or column) list: start site, direction (-1, 0, +1), sites travelled.
+    Returns the new length of the list."""
+    site[n] = at
+    sign[n] = sg
+    moves[n] = m
+    return n + 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _close_batch(bmeta: np.ndarray, nb: int, r0: int, r1: int, c0: int, c1: int, travel: int, kind: int) -> None:
+    """Record batch ``nb``: row tones ``[r0, r1)``, column tones ``[c0, c1)``, the longest travel, its kind."""
+    bmeta[nb, 0] = r0
+    bmeta[nb, 1] = r1
+    bmeta[nb, 2] = c0
+    bmeta[nb, 3] = c1
+    bmeta[nb, 4] = travel
+    bmeta[nb, 5] = kind
+
+
 @njit(cache=True, nogil=True)
 def _sort_desc(idx: np.ndarray, n: int, score: np.ndarray) -> None:
     for i in range(1, n):
@@ -156,23 +177,13 @@ def _column_batch(
         return -1, nrr, ncr, n_steps
     if n_steps + n_dist > steps.shape[0]:
         return -1, nrr, ncr, n_steps
-    bmeta[nb, 0] = nrr
+    first_row, first_col = nrr, ncr
     for i in range(h_rows):
         d = r0 + i - pos[k + i]
         if d != 0:
-            brow[nrr] = pos[k + i]
-            brs[nrr] = 1 if d > 0 else -1
-            brm[nrr] = d if d > 0 else -d
-            nrr += 1
-    bmeta[nb, 1] = nrr
-    bmeta[nb, 2] = ncr
-    bcol[ncr] = c
-    bcs[ncr] = 0
-    bcm[ncr] = 0
-    ncr += 1
-    bmeta[nb, 3] = ncr
-    bmeta[nb, 4] = dmax
-    bmeta[nb, 5] = K_COLUMN
+            nrr = _put_tone(brow, brs, brm, nrr, pos[k + i], 1 if d > 0 else -1, d if d > 0 else -d)
+    ncr = _put_tone(bcol, bcs, bcm, ncr, c, 0, 0)
+    _close_batch(bmeta, nb, first_row, nrr, first_col, ncr, dmax, K_COLUMN)
     for i in range(h_rows - 1, -1, -1):  # down-movers bottom-first
         d = r0 + i - pos[k + i]
         for s in range(d):
@@ -238,27 +249,17 @@ def _relay(
         return -1, nrr, ncr, n_steps
     if n_steps + dist > steps.shape[0]:
         return -1, nrr, ncr, n_steps
-    bmeta[nb, 0] = nrr
-    brow[nrr] = r
-    brs[nrr] = 0
-    brm[nrr] = 0
-    nrr += 1
-    bmeta[nb, 1] = nrr
-    bmeta[nb, 2] = ncr
+    first_row, first_col = nrr, ncr
+    nrr = _put_tone(brow, brs, brm, nrr, r, 0, 0)
     dmax = 0
     for q in range(m):  # ascending column order
         i = q if s > 0 else m - 1 - q
         nxt = cand[i + 1] if i + 1 < m else c
         d = nxt - cand[i] if s > 0 else cand[i] - nxt
-        bcol[ncr] = cand[i]
-        bcs[ncr] = s
-        bcm[ncr] = d
-        ncr += 1
+        ncr = _put_tone(bcol, bcs, bcm, ncr, cand[i], s, d)
         if d > dmax:
             dmax = d
-    bmeta[nb, 3] = ncr
-    bmeta[nb, 4] = dmax
-    bmeta[nb, 5] = K_HOP
+    _close_batch(bmeta, nb, first_row, nrr, first_col, ncr, dmax, K_HOP)
     for i in range(m - 1, -1, -1):  # the atom nearest the receiver first
         nxt = cand[i + 1] if i + 1 < m else c
         x = cand[i]
@@ -417,21 +418,11 @@ def _balance(
                 return OVERFLOW, nb, nrr, ncr, n_steps
             if n_steps + take * d > steps.shape[0]:
                 return OVERFLOW, nb, nrr, ncr, n_steps
-            bmeta[nb, 0] = nrr
+            first_row, first_col = nrr, ncr
             for i in range(take):
-                brow[nrr] = cand[i]
-                brs[nrr] = 0
-                brm[nrr] = 0
-                nrr += 1
-            bmeta[nb, 1] = nrr
-            bmeta[nb, 2] = ncr
-            bcol[ncr] = j
-            bcs[ncr] = s
-            bcm[ncr] = d
-            ncr += 1
-            bmeta[nb, 3] = ncr
-            bmeta[nb, 4] = d
-            bmeta[nb, 5] = K_HOP
+                nrr = _put_tone(brow, brs, brm, nrr, cand[i], 0, 0)
+            ncr = _put_tone(bcol, bcs, bcm, ncr, j, s, d)
+            _close_batch(bmeta, nb, first_row, nrr, first_col, ncr, d, K_HOP)
             nb += 1
             for t in range(d):
                 for i in range(take):
@@ -523,20 +514,10 @@ def _relay_one(
         if n_steps + best > steps.shape[0]:
             return -1, nrr, ncr, n_steps, True
         sy = 1 if best_r > y_best else -1
-        bmeta[nb, 0] = nrr
-        brow[nrr] = y_best
-        brs[nrr] = sy
-        brm[nrr] = best
-        nrr += 1
-        bmeta[nb, 1] = nrr
-        bmeta[nb, 2] = ncr
-        bcol[ncr] = a
-        bcs[ncr] = 0
-        bcm[ncr] = 0
-        ncr += 1
-        bmeta[nb, 3] = ncr
-        bmeta[nb, 4] = best
-        bmeta[nb, 5] = K_HOP
+        first_row, first_col = nrr, ncr
+        nrr = _put_tone(brow, brs, brm, nrr, y_best, sy, best)
+        ncr = _put_tone(bcol, bcs, bcm, ncr, a, 0, 0)
+        _close_batch(bmeta, nb, first_row, nrr, first_col, ncr, best, K_HOP)
         nb += 1
         y = y_best
         while y != best_r:
@@ -788,7 +769,7 @@ def _fill_batch(
     Returns the new counts (nb, nrr, ncr, n_steps), nb = -1 on overflow."""
     if nb >= bmeta.shape[0] or nrr + nr > brow.shape[0] or ncr + n_cols > bcol.shape[0]:
         return -1, nrr, ncr, n_steps
-    bmeta[nb, 0] = nrr
+    first_row, first_col = nrr, ncr
     for w in range(nwr):
         rows = np.uint64(0)
         for i in range(n_cols):
@@ -796,21 +777,11 @@ def _fill_batch(
         x = rows & (_range_word(0, h, w) | _range_word(hp + 1, nr, w))
         while x:
             r = (w << 6) + _lowbit_index(x)
-            brow[nrr] = r
-            brs[nrr] = 1 if r < h else -1
-            brm[nrr] = 1
-            nrr += 1
+            nrr = _put_tone(brow, brs, brm, nrr, r, 1 if r < h else -1, 1)
             x &= x - np.uint64(1)
-    bmeta[nb, 1] = nrr
-    bmeta[nb, 2] = ncr
     for i in range(n_cols):
-        bcol[ncr] = cols[i]
-        bcs[ncr] = 0
-        bcm[ncr] = 0
-        ncr += 1
-    bmeta[nb, 3] = ncr
-    bmeta[nb, 4] = 1
-    bmeta[nb, 5] = K_FILL
+        ncr = _put_tone(bcol, bcs, bcm, ncr, cols[i], 0, 0)
+    _close_batch(bmeta, nb, first_row, nrr, first_col, ncr, 1, K_FILL)
     for i in range(n_cols):
         c = cols[i]
         pos = prow[c]

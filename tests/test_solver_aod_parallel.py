@@ -4,10 +4,6 @@ the paper's 32x64 problem; clear errors; compiled kernels == the same kernels ru
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +14,7 @@ from engine.solvers import PlannerError, Solver, UnsolvableError, solve
 from engine.solvers.aod_parallel import AODParallelPlanner
 from engine.solvers.validate import validate
 from engine.targets import centre_target, rectangle_target
+from numba_twins import jit_and_python_outputs
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -186,11 +183,5 @@ print(json.dumps(out))
 
 def test_compiled_kernels_match_plain_python() -> None:
     """The numba kernels and the same source run as plain Python (NUMBA_DISABLE_JIT) give the same plans."""
-    runs = []
-    for disable in ("0", "1"):
-        env = {**os.environ, "NUMBA_DISABLE_JIT": disable, "PYTHONPATH": str(REPO)}
-        res = subprocess.run(
-            [sys.executable, "-c", _PLAN_SCRIPT], capture_output=True, text=True, env=env, cwd=REPO, check=True
-        )
-        runs.append(json.loads(res.stdout))
-    assert runs[0] == runs[1] and len(runs[0]) >= 12
+    compiled, interpreted = jit_and_python_outputs(_PLAN_SCRIPT)
+    assert compiled == interpreted and len(compiled) >= 12

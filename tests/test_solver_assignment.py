@@ -11,6 +11,7 @@ from scipy.optimize import linear_sum_assignment
 
 from engine.solvers import PlannerError, Solver, UnsolvableError, solve
 from engine.solvers.validate import validate
+from numba_twins import jit_and_python_outputs
 
 NY = NX = 32
 YY, XX = np.mgrid[:NY, :NX]
@@ -126,18 +127,5 @@ print(json.dumps(out))
 
 
 def test_batching_kernels_match_plain_python() -> None:
-    import json
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    repo = Path(__file__).resolve().parents[1]
-    runs = []
-    for disable in ("0", "1"):
-        env = {**os.environ, "NUMBA_DISABLE_JIT": disable, "PYTHONPATH": str(repo)}
-        res = subprocess.run(
-            [sys.executable, "-c", _BATCH_SCRIPT], capture_output=True, text=True, env=env, cwd=repo, check=True
-        )
-        runs.append(json.loads(res.stdout))
-    assert runs[0] == runs[1] and len(runs[0]) >= 3
+    compiled, interpreted = jit_and_python_outputs(_BATCH_SCRIPT)
+    assert compiled == interpreted and len(compiled) >= 3

@@ -3,10 +3,6 @@ quality against the L1 assignment bound; the errors; compiled kernels == the sam
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +12,7 @@ from scipy.optimize import linear_sum_assignment
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations
 from engine.solvers.redrec import BATCHINGS, RedRecPlanner
 from engine.targets import centre_target
+from numba_twins import jit_and_python_outputs
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -199,11 +196,5 @@ print(json.dumps(out))
 
 def test_compiled_kernels_match_plain_python() -> None:
     """The numba kernels and the same source run as plain Python (NUMBA_DISABLE_JIT) give the same plans."""
-    runs = []
-    for disable in ("0", "1"):
-        env = {**os.environ, "NUMBA_DISABLE_JIT": disable, "PYTHONPATH": str(REPO)}
-        res = subprocess.run(
-            [sys.executable, "-c", _PLAN_SCRIPT], capture_output=True, text=True, env=env, cwd=REPO, check=True
-        )
-        runs.append(json.loads(res.stdout))
-    assert runs[0] == runs[1] and len(runs[0]) >= 8
+    compiled, interpreted = jit_and_python_outputs(_PLAN_SCRIPT)
+    assert compiled == interpreted and len(compiled) >= 8

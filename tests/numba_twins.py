@@ -1,0 +1,24 @@
+"""Run a script twice, compiled by numba and as plain Python (``NUMBA_DISABLE_JIT=1``), for the tests that
+check a planner's kernels against their own source: the plain-Python run is the readable reference."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def jit_and_python_outputs(script: str) -> tuple[Any, Any]:
+    """The JSON ``script`` prints, compiled and then interpreted."""
+    runs = []
+    for disable in ("0", "1"):
+        env = {**os.environ, "NUMBA_DISABLE_JIT": disable, "PYTHONPATH": str(REPO)}
+        res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=REPO,
+                             check=True)
+        runs.append(json.loads(res.stdout))
+    return runs[0], runs[1]

@@ -64,6 +64,9 @@ def main() -> None:
     print(f"lookup per slot: median {us(lookup_s, 50):.3f} us after a render, {us(warm_s, 50):.3f} us warm; "
           f"per table waveform (key): median {us(per_waveform_s, 50):.3f} us; "
           f"render per slot: median {us(render_s, 50):.2f} us")
+    slot_us = config.waveforms.slot_duration_s * 1e6
+    print(f"render keeps up with playback: {us(render_s, 50):.2f} us of host time per {slot_us:.0f} us slot "
+          f"({us(render_s, 50) / slot_us:.2f} of real time; p99 {us(render_s, 99) / slot_us:.2f})")
     print(f"lookup table: {bank.table_bytes} bytes")
 
 

@@ -62,6 +62,14 @@ def default_engine_cpu() -> int | None:
     return cpus[-1] if len(cpus) >= 2 else None
 
 
+def _describe_exit(code: int | None) -> str:
+    return (
+        "the engine process exited"
+        + (f" with code {code}" if code is not None else "")
+        + (f" (signal {-code})" if code is not None and code < 0 else "")
+    )
+
+
 def _portable(err: BaseException) -> BaseException:
     """``err`` if it survives pickling, else a ``RuntimeError`` carrying its type and message."""
     try:
@@ -182,6 +190,13 @@ class EngineProcess:
         return self._process.pid if self._process is not None else None
 
     @property
+    def exit_reason(self) -> str | None:
+        """How the engine process ended (``None`` while it runs or before ``start``)."""
+        if self._dead is None and self._process is not None and self._process.poll() is not None:
+            return _describe_exit(self._process.returncode)
+        return self._dead
+
+    @property
     def alive(self) -> bool:
         return self._process is not None and self._process.poll() is None and self._dead is None
 
@@ -246,11 +261,7 @@ class EngineProcess:
             code: int | None = self._process.wait(timeout=1)
         except subprocess.TimeoutExpired:
             code = None
-        self._dead = (
-            "the engine process exited"
-            + (f" with code {code}" if code is not None else "")
-            + (f" (signal {-code})" if code is not None and code < 0 else "")
-        )
+        self._dead = _describe_exit(code)
         with self._pending_lock:
             pending, self._pending = list(self._pending.values()), {}
         for future in pending:

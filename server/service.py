@@ -469,7 +469,7 @@ class LabService:
         """An engine process that died becomes a ``_NoEngine`` with its reason: the server reports it and a
         configuration applied later starts a new engine (``_apply`` re-opens)."""
         if not isinstance(self._et, _NoEngine) and not getattr(self._et, "alive", True):
-            reason = f"{getattr(self._et, '_dead', None) or 'the engine process is gone'}"
+            reason = getattr(self._et, "exit_reason", None) or "the engine process is gone"
             reason += "; apply a configuration (PUT /api/config) to start a new engine"
             self._et.close()
             self._et = _NoEngine(reason)

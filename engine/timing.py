@@ -76,10 +76,7 @@ class StageTimer:
         A stage lapped several times in one cycle (e.g. the uploads of two segments) accumulates.
         """
         t = self._now_s()
-        row = self._rows[self.cycle]
-        i = _INDEX[stage]
-        previous = row[i]
-        row[i] = t - self._t0 if previous != previous else previous + (t - self._t0)  # NaN: not run yet
+        self.record(stage, t - self._t0)
         self._t0 = t
         return t
 

@@ -73,7 +73,7 @@ def test_pinning_keeps_the_server_off_the_engine_core() -> None:
     before = os.sched_getaffinity(0)
     host = EngineProcess(partial(build_engine, chain_config()), cpu=cpu).start(timeout_s=120)
     try:
-        assert os.sched_getaffinity(host._process.pid) == {cpu}
+        assert os.sched_getaffinity(host.pid) == {cpu}
         assert cpu not in os.sched_getaffinity(0)
     finally:
         host.close()
@@ -89,7 +89,7 @@ def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers(
         with TestClient(create_app(service=service)) as client:
             assert client.post("/api/shots").status_code == 200
             old = service._et
-            os.kill(old._process.pid, signal.SIGKILL)
+            os.kill(old.pid, signal.SIGKILL)
             deadline = time.monotonic() + 10
             while old.alive and time.monotonic() < deadline:
                 time.sleep(0.05)

@@ -49,9 +49,14 @@ SOFTWARE_STAGES: tuple[str, ...] = ("II.detect", "II.threshold", "III.solve", "I
 SOFTWARE_STAGES_WITH_RENDER: tuple[str, ...] = (*SOFTWARE_STAGES, "IV.render")
 
 
+def _software_s(records: list[ShotRecord], stages: tuple[str, ...]) -> list[float]:
+    """The sum of ``stages`` (s) for every cycle that rearranged atoms."""
+    return [sum(c.stage_s.get(s, 0.0) for s in stages) for r in records for c in r.cycles if c.n_slots > 0]
+
+
 def software_latencies_us(records: list[ShotRecord], stages: tuple[str, ...] = SOFTWARE_STAGES) -> list[float]:
     """The sum of ``stages`` (us) for every cycle that rearranged atoms."""
-    return [sum(c.stage_s.get(s, 0.0) for s in stages) * 1e6 for r in records for c in r.cycles if c.n_slots > 0]
+    return [t * 1e6 for t in _software_s(records, stages)]
 
 
 def _stats_us(values_s: list[float]) -> dict[str, float]:
@@ -91,8 +96,8 @@ def runtime_figures(records: list[ShotRecord], problem: str | None = None) -> di
         entry = _stats_us(samples[stage])
         entry["paper_mean"] = paper[stage] * 1e3 if stage in paper else None
         stages[stage] = entry
-    sw = _stats_us([v / 1e6 for v in software_latencies_us(records)])
-    sw_render = _stats_us([v / 1e6 for v in software_latencies_us(records, SOFTWARE_STAGES_WITH_RENDER)])
+    sw = _stats_us(_software_s(records, SOFTWARE_STAGES))
+    sw_render = _stats_us(_software_s(records, SOFTWARE_STAGES_WITH_RENDER))
     return {
         "shots": len(records),
         "successes": sum(1 for r in records if r.truth.get("target_filled", r.success)),

@@ -30,6 +30,7 @@ __all__ = [
     "ImagingConfig",
     "LoopConfig",
     "SimConfig",
+    "SimImagingConfig",
     "SolverConfig",
     "SystemConfig",
     "TargetConfig",
@@ -100,7 +101,11 @@ class ArrayConfig(_Model):
 
 
 class CameraConfig(_Model):
-    """EMCCD settings, trap-to-pixel geometry and the readout-time model (paper, Sec. III.A)."""
+    """EMCCD settings, trap-to-pixel geometry and the readout-time model (paper, Sec. III.A).
+
+    Only what a real camera is configured with; the sensor's and the atoms' hidden properties (photon rates,
+    quantum efficiency, noise, gain calibration) belong to the simulated lab (``sim.imaging``).
+    """
 
     roi_width_px: Annotated[int, Field(ge=1, le=4096)] = 1024
     roi_height_px: Annotated[int, Field(ge=1, le=4096)] = 16
@@ -111,12 +116,6 @@ class CameraConfig(_Model):
     psf_sigma_px: Annotated[float, Field(gt=0, le=100)] = 1.2
     exposure_s: Annotated[float, Field(gt=0, le=60)] = 0.020
     em_gain: Annotated[float, Field(ge=1, le=1000)] = 300.0
-    photons_per_atom: Annotated[float, Field(gt=0, le=1e7)] = 400.0
-    background_photons_per_px: Annotated[float, Field(ge=0)] = 0.5
-    quantum_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
-    read_noise_e: Annotated[float, Field(ge=0)] = 60.0
-    bias_counts: Annotated[float, Field(ge=0, le=65535)] = 500.0
-    electrons_per_count: Annotated[float, Field(gt=0, le=1e6)] = 20.0
     vertical_shift_s: Annotated[float, Field(gt=0, le=1e-3)] = 4.33e-6
     horizontal_rate_hz: Annotated[float, Field(ge=1e3, le=1e10)] = 30e6
     transfer_bytes_per_s: Annotated[float, Field(ge=1e3, le=1e12)] = 1.431e9
@@ -134,7 +133,10 @@ class ImagingConfig(_Model):
     psf_box_px: Annotated[int, Field(ge=1, le=31)] = 7
     threshold: float | None = Field(
         default=None,
-        description="counts above which a trap is occupied; null = derive from the camera model at configure time",
+        description=(
+            "counts above which a trap is occupied; null = calibrate from frames taken when the configuration "
+            "is applied (a two-population fit, engine.imaging_calibration)"
+        ),
     )
 
     @model_validator(mode="after")
@@ -229,6 +231,40 @@ class FaultConfig(_Model):
     disk_full: bool = Field(default=False, description="writing shot records fails as on a full disk")
 
 
+class SimImagingConfig(_Model):
+    """What the simulated lab's camera sees: the atoms' light, the sensor's noise, and what imaging costs atoms.
+
+    The engine never reads these (its detection is configured or calibrated from frames); they are the
+    simulated world's hidden truth. Defaults and their sources: ``docs/simulation.md`` (Imaging).
+    """
+
+    scattering_rate_hz: Annotated[float, Field(gt=0, le=1e8)] = Field(
+        default=5.0e5, description="photons an atom scatters per second under the imaging light"
+    )
+    collection_efficiency: Annotated[float, Field(gt=0, le=1)] = Field(
+        default=0.04, description="fraction of scattered photons that reach the sensor (objective NA x optics)"
+    )
+    background_photons_per_px_per_s: Annotated[float, Field(ge=0, le=1e9)] = Field(
+        default=25.0, description="stray light reaching each sensor pixel per second of exposure"
+    )
+    clock_induced_charge_e: Annotated[float, Field(ge=0, le=10)] = Field(
+        default=0.005, description="mean spurious electrons per sensor pixel per readout (EMCCD clock-induced charge)"
+    )
+    quantum_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
+    read_noise_e: Annotated[float, Field(ge=0)] = 60.0
+    bias_counts: Annotated[float, Field(ge=0, le=65535)] = 500.0
+    electrons_per_count: Annotated[float, Field(gt=0, le=1e6)] = 20.0
+    loss_rate_hz: Annotated[float, Field(ge=0, le=1e4)] = Field(
+        default=0.5, description="probability per second of exposure that an imaged atom is heated out (0.5: 1 % per 20 ms)"
+    )
+    brightness_spread: Annotated[float, Field(ge=0, le=1)] = Field(
+        default=0.05, description="relative rms trap-to-trap variation of an atom's brightness (trap depth), seeded"
+    )
+    beam_edge_brightness: Annotated[float, Field(gt=0, le=1)] = Field(
+        default=0.9, description="brightness at the array's corners relative to its centre (Gaussian imaging beam)"
+    )
+
+
 class SimConfig(_Model):
     """The simulated lab: atoms, loss and time."""
 
@@ -240,6 +276,7 @@ class SimConfig(_Model):
     lossless: bool = False
     time: Literal["simulated", "realtime"] = "simulated"
     faults: FaultConfig = FaultConfig()
+    imaging: SimImagingConfig = SimImagingConfig()
 
 
 class DevicesConfig(_Model):

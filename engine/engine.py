@@ -19,7 +19,7 @@ import numpy as np
 
 from engine.config import SystemConfig
 from engine.devices import DeviceError, DeviceSet
-from engine.imaging import Detector
+from engine.imaging import Detector, calibration_frames
 from engine.operations import Plan
 from engine.records import CycleRecord, Outcome, ShotRecord
 from engine.solvers import Solver, UnsolvableError
@@ -134,6 +134,10 @@ class Engine:
             pipeline.solver = _FailingSolver(pipeline.solver)
         try:
             self._program_devices(pipeline)
+            running = self._p.detector if self._p is not None else None
+            if not pipeline.detector.has_thresholds and not pipeline.detector.keep_calibration(running):
+                # imaging.threshold: null, and the camera or the imaging changed: calibrate from frames now
+                pipeline.detector.calibrate(self._acquire(pipeline, calibration_frames(arr.n_traps)))
         except Exception:
             if self._p is not None:  # put the devices back the way the running configuration wants them
                 self._program_devices(self._p)
@@ -165,7 +169,7 @@ class Engine:
         )
         clock = self.devices.clock
         record.t_start_s = clock.now_s()
-        self._back_to_idle()
+        self._back_to_idle(p)
         if self.lab is not None:
             self.lab.prepare_shot()
         p.timer.reset()
@@ -288,10 +292,8 @@ class Engine:
         except DeviceError:
             pass  # the card itself failed; the fault already says why
 
-    def _back_to_idle(self) -> None:
+    def _back_to_idle(self, p: _Pipeline) -> None:
         """Before a shot: find the card resting in an idle step, or restart it there after a fault."""
-        p = self._p
-        assert p is not None
         try:
             p.streamer.recover()
         except DeviceError:
@@ -305,12 +307,14 @@ class Engine:
         With a lab (the simulated one) each frame is of a freshly loaded array; on hardware the experiment
         keeps whatever atoms it loaded. Raises ``DeviceError`` if the camera fails.
         """
-        p = self._p
-        assert p is not None
+        assert self._p is not None
+        return self._acquire(self._p, n)
+
+    def _acquire(self, p: _Pipeline, n: int) -> np.ndarray:
         if n < 1:
             raise ValueError(f"acquire_images needs n >= 1 (got {n})")
         frames = np.empty((n, *p.image.shape), dtype=np.uint16)
-        self._back_to_idle()
+        self._back_to_idle(p)
         for frame in frames:
             if self.lab is not None:
                 self.lab.prepare_shot()

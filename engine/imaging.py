@@ -9,9 +9,10 @@ the flat index of its box's top-left pixel and dense weights, the boxes sorted i
 2048 traps the index table alone (800 KB) overflowed the 1 MB L2 cache beside the frame; the box rows are
 read as runs of adjacent pixels, ``SIMD_LANES`` at a time.
 
-Thresholds come from, in order: an explicit array/scalar, ``imaging.threshold`` in the config, or the
-camera model (``model_threshold``). ``calibrate_threshold`` fits measured sums instead (see
-``engine.imaging_calibration``).
+Thresholds come from, in order: an explicit array/scalar, ``imaging.threshold`` in the config, or, when
+both are absent, ``Detector.calibrate`` on frames (the engine takes ``calibration_frames`` of them when it
+applies such a configuration): the two-population fit of ``engine.imaging_calibration``. Never from a model
+of the camera: the engine's detection parameters are its own, measured, not read from a simulator.
 """
 
 from __future__ import annotations
@@ -26,13 +27,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from engine.config import SystemConfig
-from engine.imaging_calibration import (
-    ThresholdCalibration,
-    calibrate_threshold,
-    fit_psf,
-    min_error_threshold,
-    model_sum_statistics,
-)
+from engine.imaging_calibration import ThresholdCalibration, calibrate_threshold, fit_psf
 from engine.psf import PsfModel, psf_from_config
 
 __all__ = [
@@ -43,8 +38,8 @@ __all__ = [
     "ThresholdCalibration",
     "box_sums",
     "calibrate_threshold",
+    "calibration_frames",
     "fit_psf",
-    "model_threshold",
     "psf_from_config",
     "threshold",
     "threshold_reference",
@@ -191,18 +186,23 @@ def threshold_reference(counts: np.ndarray, thresholds: np.ndarray) -> np.ndarra
     return counts > thresholds
 
 
-def model_threshold(config: SystemConfig, psf: PsfModel, *, fraction_filled: float = 0.5) -> np.ndarray:
-    """Per-trap thresholds from the camera model: the minimum-error point between the predicted empty and
-    filled weighted-sum distributions (moment-matched shifted gammas, EMCCD statistics included)."""
-    empty, atom = model_sum_statistics(config.camera, psf)
-    return min_error_threshold(empty, atom, fraction_filled)
+#: Weighted sums a threshold calibration at configure time collects (about 1,000 per population at 50 %
+#: filling: the fitted means and widths then carry ~3 % relative error on the width, well inside what moves
+#: the minimum-error threshold noticeably).
+CALIBRATION_READINGS = 2000
+
+
+def calibration_frames(n_traps: int) -> int:
+    """Frames to take for a threshold calibration of ``n_traps`` traps (at least 4, whatever the array)."""
+    return max(4, -(-CALIBRATION_READINGS // n_traps))
 
 
 class Detector:
     """Frame -> occupancy for one configuration; owns every buffer and compiles its kernels on construction.
 
     ``detect(image, out)`` = ``sum(image)`` (stage II.detect) + ``classify(out)`` (stage II.threshold).
-    ``counts`` holds the last weighted sums (``float32[n_traps]``); calibration collects them.
+    ``counts`` holds the last weighted sums (``float32[n_traps]``); calibration collects them. Without a
+    threshold (none given, ``imaging.threshold: null``) it classifies nothing until ``calibrate(frames)``.
     """
 
     def __init__(
@@ -220,12 +220,13 @@ class Detector:
             raise ValueError(f"psf has {self.psf.pixel_idx.shape[0]} traps, config has {self.n_traps}")
         self.boxes = BoxLayout.from_pixels(self.psf.pixel_idx, self.psf.weights, self.frame_shape, self.psf.box_px)
         self.counts = np.zeros(self.n_traps, dtype=np.float32)
-        self.thresholds = np.empty(self.n_traps, dtype=np.float32)
+        self.thresholds = np.full(self.n_traps, np.nan, dtype=np.float32)
+        self.calibration: ThresholdCalibration | None = None  # the fit the thresholds came from, if any
+        self.has_thresholds = False
         if thresholds is None:
             thresholds = config.imaging.threshold
-        if thresholds is None:
-            thresholds = model_threshold(config, self.psf)
-        self.set_thresholds(thresholds)
+        if thresholds is not None:
+            self.set_thresholds(thresholds)
         # The last image and occupancy buffers that passed the checks: the engine passes the same two buffers
         # every cycle, so their checks (microseconds with cold caches) run once, not in every cycle.
         self._checked_image: np.ndarray | None = None
@@ -238,6 +239,34 @@ class Detector:
         if not np.all(np.isfinite(values)):
             raise ValueError("thresholds must be finite")
         self.thresholds[:] = values
+        self.has_thresholds = True
+
+    def calibrate(self, frames: np.ndarray) -> ThresholdCalibration:
+        """Fit one threshold to the weighted sums of ``frames`` (``uint16[k, h, w]`` of a partly loaded array)
+        and use it for every trap; returns the fit. Raises ``ValueError`` if the sums do not show an empty and
+        a filled population (an empty or a full array, no light)."""
+        counts = np.empty((len(frames), self.n_traps), dtype=np.float64)
+        for i, frame in enumerate(frames):
+            self.sum(np.ascontiguousarray(frame))
+            counts[i] = self.counts
+        self._checked_image = None
+        calibration = calibrate_threshold(counts).require_two_populations()
+        self.set_thresholds(calibration.threshold)
+        self.calibration = calibration
+        return calibration
+
+    def keep_calibration(self, running: Detector | None) -> bool:
+        """Take over ``running``'s calibrated threshold if it detects with the same camera settings, imaging
+        settings and array as this one (a change elsewhere, e.g. of the solver, needs no new calibration);
+        returns whether it did. What the engine cannot see (the atoms growing dimmer) is caught by
+        calibrating again through the API, as in a lab."""
+        if running is None or running.calibration is None:
+            return False
+        if any(getattr(running.config, key) != getattr(self.config, key) for key in ("camera", "imaging", "array")):
+            return False
+        self.set_thresholds(running.thresholds)
+        self.calibration = running.calibration
+        return True
 
     def sum(self, image: np.ndarray) -> None:
         """Weighted sums of ``image`` (``uint16[h, w]``, C-contiguous) into ``self.counts``."""
@@ -251,6 +280,11 @@ class Detector:
     def classify(self, out_occupancy: np.ndarray) -> None:
         """Threshold ``self.counts`` into ``out_occupancy`` (``bool[ny, nx]`` or ``bool[n_traps]``)."""
         if out_occupancy is not self._checked_out:
+            if not self.has_thresholds:
+                raise ValueError(
+                    "the detector has no threshold: set imaging.threshold or calibrate it from frames "
+                    "(Detector.calibrate; the engine does this when it applies imaging.threshold: null)"
+                )
             if out_occupancy.size != self.n_traps or out_occupancy.dtype != np.bool_ or not out_occupancy.flags.c_contiguous:
                 raise ValueError(f"out_occupancy must be a C-contiguous bool array with {self.n_traps} elements")
             self._checked_out = out_occupancy
@@ -264,7 +298,7 @@ class Detector:
     def _warm_up(self) -> None:
         """Compile (or load from cache) both kernels for the exact argument types used in a cycle."""
         self.sum(np.zeros(self.frame_shape, dtype=np.uint16))
-        self.classify(np.zeros((self.config.array.ny, self.config.array.nx), dtype=bool))
-        self.classify(np.zeros(self.n_traps, dtype=bool))
+        threshold(self.counts, self.thresholds, np.zeros((self.config.array.ny, self.config.array.nx), dtype=bool))
+        threshold(self.counts, self.thresholds, np.zeros(self.n_traps, dtype=bool))
         self.counts[:] = 0
         self._checked_image = self._checked_out = None

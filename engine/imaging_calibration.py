@@ -1,5 +1,8 @@
-"""Module II calibration, run between shots: threshold from measured sums, PSF from calibration images, and
-the camera-model statistics that give a threshold before any calibration exists.
+"""Module II calibration, run between shots: threshold from measured sums, PSF from calibration images.
+
+Detection is calibrated from frames only, never from a model of the camera: on hardware the sensor's noise,
+gain and the atoms' brightness are not known to the engine, and in the simulated lab they are the world's
+hidden truth (``sim.imaging``), which the engine must not read.
 
 The threshold is the point that minimises the probability of a wrong assignment (paper Sec. II, after
 Cooper 2024): where ``P(filled) p_filled(s) = P(empty) p_empty(s)``. Each population of weighted sums is
@@ -20,7 +23,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.special import gammainc, gammaincc, gammaln
 
-from engine.config import CameraConfig, SystemConfig
+from engine.config import SystemConfig
 from engine.psf import PsfModel, box_pixels, frame_shape, pixel_fractions, psf_from_config
 
 __all__ = [
@@ -29,11 +32,13 @@ __all__ = [
     "calibrate_threshold",
     "fit_psf",
     "min_error_threshold",
-    "model_sum_statistics",
+    "MIN_SEPARATION",
 ]
 
-EM_EXCESS_NOISE_FACTOR = 2.0  # variance of a high-gain EM register's output: 2 * n * gain**2
-ADC_QUANTISATION_VAR = 1.0 / 12.0
+#: The fitted populations must be this many (combined) standard deviations apart to be called empty and filled
+#: traps: frames of an empty (or a full) array still split into two noise "populations" about one apart (3 apart
+#: leaves ~0.5 % detection error, a usable if poor calibration).
+MIN_SEPARATION = 3.0
 MIN_SKEW = 1e-2  # below this a population is treated as (a gamma indistinguishable from) a Gaussian
 MAX_SKEW = 10.0
 
@@ -51,6 +56,21 @@ class ThresholdCalibration:
     fraction_filled: float
     skew_empty: float
     skew_atom: float
+
+    @property
+    def separation(self) -> float:
+        """Distance between the population means in (combined) standard deviations."""
+        return (self.mean_atom - self.mean_empty) / math.hypot(self.std_empty, self.std_atom)
+
+    def require_two_populations(self) -> ThresholdCalibration:
+        """This fit, or a ``ValueError`` if its populations are too close to be empty and filled traps."""
+        if self.separation < MIN_SEPARATION:
+            raise ValueError(
+                f"the weighted sums look like a single population (the two fitted ones are only "
+                f"{self.separation:.1f} standard deviations apart, {MIN_SEPARATION:g} needed); image a partly "
+                "loaded array to calibrate"
+            )
+        return self
 
 
 @dataclass(frozen=True)
@@ -160,31 +180,6 @@ def calibrate_threshold(counts: np.ndarray, *, max_iterations: int = 300) -> Thr
         skew_empty=float(empty.skew),
         skew_atom=float(atom.skew),
     )
-
-
-def model_sum_statistics(camera: CameraConfig, psf: PsfModel) -> tuple[Population, Population]:
-    """Predicted distributions (mean, std, skewness per trap) of each weighted sum when empty and when filled.
-
-    A frame pixel with ``lam`` mean photoelectrons is compound Poisson: ``n ~ Poisson(lam)`` electrons each
-    multiplied into an exponential of mean ``gain``, so its cumulants are ``lam * r! * gain**r``; read noise
-    and ADC quantisation add variance only. In counts divide by ``e_per_count**r``, add the bias to the mean.
-    Pixels are independent, so the weighted sum's cumulants are ``sum(w**r * kappa_r)``.
-    """
-    bx, by = camera.binning
-    background_e = camera.background_photons_per_px * camera.quantum_efficiency * bx * by
-    lam_empty = np.full(psf.light_fraction.shape, background_e)
-    lam_atom = lam_empty + camera.photons_per_atom * camera.quantum_efficiency * psf.light_fraction
-    w = psf.weights.astype(np.float64)
-    g = camera.em_gain / camera.electrons_per_count  # counts per electron entering the EM register
-    noise_var = (camera.read_noise_e / camera.electrons_per_count) ** 2 + ADC_QUANTISATION_VAR
-    populations = []
-    for lam in (lam_empty, lam_atom):
-        mean = (w * (camera.bias_counts + lam * g)).sum(axis=1)
-        var = (w**2 * (EM_EXCESS_NOISE_FACTOR * lam * g**2 + noise_var)).sum(axis=1)
-        third = (w**3 * 6.0 * lam * g**3).sum(axis=1)
-        std = np.sqrt(var)
-        populations.append(Population(mean, std, third / std**3))
-    return populations[0], populations[1]
 
 
 def fit_psf(images: np.ndarray, config: SystemConfig, *, rounds: int = 3) -> PsfModel:

@@ -11,15 +11,11 @@ from __future__ import annotations
 import numpy as np
 
 from engine.config import SystemConfig
-from engine.imaging import model_threshold, weighted_sums_reference
+from engine.imaging import weighted_sums_reference
 from engine.imaging_calibration import Population, calibrate_threshold, error_probability, fit_psf
 from engine.psf import PsfModel, psf_from_config
 
-__all__ = ["MIN_SEPARATION", "psf_calibration", "threshold_calibration", "weighted_sums"]
-
-#: The fitted populations must be this many (combined) standard deviations apart to be called empty and filled
-#: traps: frames of an empty (or a full) array still split into two noise "populations" about one apart.
-MIN_SEPARATION = 4.0
+__all__ = ["psf_calibration", "threshold_calibration", "weighted_sums"]
 
 
 def weighted_sums(images: np.ndarray, psf: PsfModel) -> np.ndarray:
@@ -35,32 +31,27 @@ def threshold_calibration(images: np.ndarray, config: SystemConfig) -> dict:
     """Fit the occupancy threshold to the weighted sums of ``images`` (``uint16[k, h, w]``) under ``config``'s PSF.
 
     Returns the fields of ``server.models.ThresholdCalibrationOut`` that describe the fit (no id, no digest).
-    ``current_fidelity`` evaluates the threshold in use now (the config's, or the camera model's per trap)
-    under the same fitted populations, so the two fidelities are directly comparable.
+    ``current_fidelity`` evaluates the configured threshold under the same fitted populations, so the two
+    fidelities (1 - predicted detection error) are directly comparable. With ``imaging.threshold: null``
+    there is no fixed threshold to compare (the engine fitted one to frames when the configuration was
+    applied): both current fields are None, and applying the result fixes the threshold in the config.
     """
     psf = psf_from_config(config)
     counts = weighted_sums(images, psf)
-    cal = calibrate_threshold(counts)
-    separation = (cal.mean_atom - cal.mean_empty) / float(np.hypot(cal.std_empty, cal.std_atom))
-    if separation < MIN_SEPARATION:
-        raise ValueError(
-            f"the weighted sums look like a single population (the two fitted ones are only {separation:.1f} "
-            f"standard deviations apart, {MIN_SEPARATION:g} needed); image a partly loaded array to calibrate"
-        )
-    empty = Population(np.float64(cal.mean_empty), np.float64(cal.std_empty), np.float64(cal.skew_empty))
-    atom = Population(np.float64(cal.mean_atom), np.float64(cal.std_atom), np.float64(cal.skew_atom))
+    cal = calibrate_threshold(counts).require_two_populations()
+    current_threshold = current_fidelity = None
     if config.imaging.threshold is not None:
-        current = np.full(config.array.n_traps, float(config.imaging.threshold))
-    else:
-        current = np.asarray(model_threshold(config, psf), dtype=np.float64)
-    current_error = float(np.mean(error_probability(current, empty, atom, cal.fraction_filled)))
+        empty = Population(np.float64(cal.mean_empty), np.float64(cal.std_empty), np.float64(cal.skew_empty))
+        atom = Population(np.float64(cal.mean_atom), np.float64(cal.std_atom), np.float64(cal.skew_atom))
+        current_threshold = float(config.imaging.threshold)
+        current_fidelity = 1.0 - float(error_probability(np.float64(current_threshold), empty, atom, cal.fraction_filled))
     return {
         "kind": "threshold",
         "images": int(len(images)),
         "threshold": cal.threshold,
         "fidelity": cal.fidelity,
-        "current_threshold": float(current.mean()),
-        "current_fidelity": 1.0 - current_error,
+        "current_threshold": current_threshold,
+        "current_fidelity": current_fidelity,
         "fraction_filled": cal.fraction_filled,
         "mean_empty": cal.mean_empty,
         "mean_atom": cal.mean_atom,

@@ -251,8 +251,10 @@ class ThresholdCalibrationOut(_CalibrationBase):
 
     threshold: float = Field(description="fitted threshold (counts, weighted sum per trap)")
     fidelity: float = Field(description="1 - P(wrong assignment) at the fitted threshold, under the fit")
-    current_threshold: float = Field(description="threshold in use now (mean over traps if per trap)")
-    current_fidelity: float = Field(description="the same fidelity estimate for the threshold in use now")
+    current_threshold: float | None = Field(
+        description="the configured threshold; null when imaging.threshold is null (the engine calibrates at apply)"
+    )
+    current_fidelity: float | None = Field(description="the same fidelity estimate for the configured threshold")
     fraction_filled: float
     mean_empty: float
     mean_atom: float

@@ -132,7 +132,7 @@ class FakeEngine:
         key = truth.camera.model_dump_json()
         if self._camera is None or self._camera[0] != key:
             self._atoms = np.zeros((cfg.array.ny, cfg.array.nx), dtype=bool)
-            camera = SimCamera(truth, atoms=lambda: self._atoms, clock=SimClock("simulated"), rng=np.random.default_rng(7))
+            camera = SimCamera(truth, atoms=lambda *_: self._atoms, clock=SimClock("simulated"), rng=np.random.default_rng(7))
             self._camera = (key, camera)
         camera = self._camera[1]
         frames = np.zeros((n, *camera.frame_shape), dtype=np.uint16)

@@ -7,29 +7,47 @@ import time
 import numpy as np
 import pytest
 
-from drivers.sim.camera import SimCamera, readout_time
+from drivers.sim.camera import SimCamera, readout_time, trap_brightness
 from drivers.sim.clock import SimClock
 from engine.config import CameraConfig, SystemConfig
 from engine.devices import Camera, DeviceError
 
 
-def grid_config(ny: int, nx: int, roi_h: int, roi_w: int, **camera: object) -> SystemConfig:
+def grid_config(ny: int, nx: int, roi_h: int, roi_w: int, imaging: dict | None = None, **camera: object) -> SystemConfig:
     return SystemConfig.model_validate(
         {
             "array": {"nx": nx, "ny": ny, "trap_source": "slm"},
             "camera": {"roi_width_px": roi_w, "roi_height_px": roi_h, **camera},
             "target": {"count": nx},
+            "sim": {"imaging": {**UNIFORM, **(imaging or {})}},
         }
     )
 
 
-def chain_config(**camera: object) -> SystemConfig:
-    return SystemConfig.model_validate({"camera": camera})
+def chain_config(imaging: dict | None = None, **camera: object) -> SystemConfig:
+    return SystemConfig.model_validate({"camera": camera, "sim": {"imaging": {**UNIFORM, **(imaging or {})}}})
+
+
+#: every trap equally bright, so that per-trap expectations are one number (the spread has its own test)
+UNIFORM = {"brightness_spread": 0.0, "beam_edge_brightness": 1.0}
+
+
+def atom_counts(config: SystemConfig) -> float:
+    """Mean counts (above bias) of a whole-exposure atom of brightness 1, from the documented photon budget."""
+    img, cam = config.sim.imaging, config.camera
+    electrons = img.scattering_rate_hz * cam.exposure_s * img.collection_efficiency * img.quantum_efficiency
+    return electrons * cam.em_gain / img.electrons_per_count
+
+
+def background_e(config: SystemConfig) -> float:
+    """Mean electrons of an unbinned pixel without atom light: stray light over the exposure plus CIC."""
+    img = config.sim.imaging
+    return img.background_photons_per_px_per_s * config.camera.exposure_s * img.quantum_efficiency + img.clock_induced_charge_e
 
 
 def make_camera(config: SystemConfig, occupancy: np.ndarray, seed: int = 0) -> tuple[SimCamera, SimClock]:
     clock = SimClock()
-    return SimCamera(config, atoms=lambda: occupancy, clock=clock, rng=np.random.default_rng(seed)), clock
+    return SimCamera(config, atoms=lambda *_: occupancy, clock=clock, rng=np.random.default_rng(seed)), clock
 
 
 def grab(camera: SimCamera) -> np.ndarray:
@@ -78,14 +96,27 @@ def test_implements_camera_protocol_and_read_advances_clock() -> None:
         assert clock.now_s() - t0 < camera.readout.total_s + 0.05
 
 
-def test_atoms_are_snapshot_at_trigger() -> None:
-    occupancy = np.ones((1, 64), dtype=bool)
-    camera, _ = make_camera(chain_config(), occupancy)
-    out = np.empty(camera.frame_shape, dtype=np.uint16)
-    camera.trigger()
-    occupancy[:] = False  # atoms lost after the exposure started must still be imaged
-    camera.read(out, timeout_s=1.0)
-    assert out[8, 8::16].min() > 700  # empty pixels read ~507, an atom's centre pixel ~1070
+def test_camera_renders_each_atom_for_the_part_of_the_exposure_it_was_there() -> None:
+    asked: list[tuple[float, float]] = []
+    presence = np.zeros((1, 64))
+    presence[0, 0::4], presence[0, 1::4], presence[0, 2::4] = 1.0, 0.5, 0.25  # column 3 of 4: empty
+
+    def atoms(t0_s: float, exposure_s: float) -> np.ndarray:
+        asked.append((t0_s, exposure_s))
+        return presence
+
+    config = chain_config()
+    clock = SimClock()
+    camera = SimCamera(config, atoms=atoms, clock=clock, rng=np.random.default_rng(2))
+    t0 = clock.now_s()
+    frames = np.stack([grab(camera) for _ in range(100)]).astype(np.float64)
+    assert asked[0] == (pytest.approx(t0, abs=1e-3), 0.020)  # the lab is asked about this exposure
+    img = config.sim.imaging
+    empty = img.bias_counts + background_e(config) * config.camera.em_gain / img.electrons_per_count
+    per_trap = (frames - empty).reshape(100, 16, 64, 16).sum(axis=(1, 3)).mean(axis=0)
+    for column, fraction in enumerate((1.0, 0.5, 0.25, 0.0)):
+        measured = per_trap[column::4].mean()
+        assert measured == pytest.approx(fraction * atom_counts(config), abs=0.02 * atom_counts(config))
 
 
 def test_same_seed_same_frame() -> None:
@@ -97,11 +128,11 @@ def test_same_seed_same_frame() -> None:
 
 def test_empty_frame_matches_emccd_statistics() -> None:
     config = grid_config(16, 32, 256, 512)
-    cam = config.camera
+    cam, img = config.camera, config.sim.imaging
     frame = grab(make_camera(config, np.zeros((16, 32), dtype=bool))[0]).astype(np.float64)
-    lam = cam.background_photons_per_px * cam.quantum_efficiency
-    mean = cam.bias_counts + lam * cam.em_gain / cam.electrons_per_count
-    var = (2 * lam * cam.em_gain**2 + cam.read_noise_e**2) / cam.electrons_per_count**2
+    lam = background_e(config)
+    mean = img.bias_counts + lam * cam.em_gain / img.electrons_per_count
+    var = (2 * lam * cam.em_gain**2 + img.read_noise_e**2) / img.electrons_per_count**2
     assert frame.mean() == pytest.approx(mean, abs=0.3)
     assert frame.var() == pytest.approx(var, rel=0.05)
     assert frame.dtype == np.float64 and frame.min() >= 0
@@ -109,14 +140,13 @@ def test_empty_frame_matches_emccd_statistics() -> None:
 
 def test_atom_signal_mean_and_position() -> None:
     config = grid_config(16, 32, 256, 512)
-    cam = config.camera
+    cam, img = config.camera, config.sim.imaging
     camera, _ = make_camera(config, np.ones((16, 32), dtype=bool))
     frame = grab(camera).astype(np.float64)
-    empty = cam.bias_counts + cam.background_photons_per_px * cam.quantum_efficiency * cam.em_gain / cam.electrons_per_count
+    empty = img.bias_counts + background_e(config) * cam.em_gain / img.electrons_per_count
     stamps = (frame - empty).reshape(16, 16, 32, 16)  # [row, y in cell, col, x in cell]
     per_atom = stamps.sum(axis=(1, 3))
-    expected = cam.photons_per_atom * cam.quantum_efficiency * cam.em_gain / cam.electrons_per_count
-    assert per_atom.mean() == pytest.approx(expected, rel=0.03)
+    assert per_atom.mean() == pytest.approx(atom_counts(config), rel=0.03)
     brightest = stamps.mean(axis=(0, 2))
     assert np.unravel_index(np.argmax(brightest), brightest.shape) == (8, 8)  # trap centre (8, 8) in each cell
 
@@ -125,21 +155,21 @@ def test_roi_and_binning() -> None:
     occupancy = np.zeros((1, 64), dtype=bool)
     occupancy[0, 10] = True
     config = chain_config(binning=(2, 2))
-    cam = config.camera
+    cam, img = config.camera, config.sim.imaging
     camera, _ = make_camera(config, occupancy)
     assert camera.frame_shape == (8, 512)
     frames = np.stack([grab(camera) for _ in range(200)]).astype(np.float64)
-    bg_e = 4 * cam.background_photons_per_px * cam.quantum_efficiency
-    empty = cam.bias_counts + bg_e * cam.em_gain / cam.electrons_per_count
+    bg_e = 4 * background_e(config)
+    empty = img.bias_counts + bg_e * cam.em_gain / img.electrons_per_count
     assert frames[:, :, 300:].mean() == pytest.approx(empty, abs=0.5)
     # on-chip binning: one read noise per binned pixel, and the atom's charge summed before the EM register
-    var = (2 * bg_e * cam.em_gain**2 + cam.read_noise_e**2) / cam.electrons_per_count**2
+    var = (2 * bg_e * cam.em_gain**2 + img.read_noise_e**2) / img.electrons_per_count**2
     assert frames[:, :, 300:].var() == pytest.approx(var, rel=0.05)
     signal = frames - empty
     x_binned = (8 + 10 * 16 + 0.5) / 2 - 0.5  # 83.75
     assert np.argmax(signal.mean(axis=(0, 1))) == round(x_binned)
     total = signal[:, :, 80:88].sum(axis=(1, 2)).mean()
-    assert total == pytest.approx(cam.photons_per_atom * cam.quantum_efficiency * cam.em_gain / cam.electrons_per_count, rel=0.03)
+    assert total == pytest.approx(atom_counts(config), rel=0.03)
 
 
 def test_configure_changes_roi_and_rejects_traps_outside() -> None:
@@ -153,7 +183,8 @@ def test_configure_changes_roi_and_rejects_traps_outside() -> None:
 
 
 def test_saturation_clips_at_adc_maximum() -> None:
-    config = chain_config(photons_per_atom=50_000, em_gain=1000, electrons_per_count=1)
+    bright = {"scattering_rate_hz": 2.5e6, "collection_efficiency": 1.0, "quantum_efficiency": 1.0}
+    config = chain_config({**bright, "electrons_per_count": 1}, em_gain=1000)  # 50,000 e- per atom
     camera, _ = make_camera(config, np.ones((1, 64), dtype=bool))
     frame = grab(camera)
     assert frame.dtype == np.uint16

@@ -222,7 +222,7 @@ def test_camera_reference_mode_renders_with_the_literal_kernel() -> None:
     occ[2, 3] = True
     frames = {}
     for ref in (False, True):
-        cam = SimCamera(cfg, atoms=lambda: occ, clock=SimClock(), rng=np.random.default_rng(4), reference=ref)
+        cam = SimCamera(cfg, atoms=lambda *_: occ, clock=SimClock(), rng=np.random.default_rng(4), reference=ref)
         out = np.empty(cam.frame_shape, np.uint16)
         stack = []
         for _ in range(40):

@@ -1,11 +1,17 @@
 """The simulated EMCCD: renders the lab's atoms through the PSF with EMCCD statistics and the paper's readout
 timing, behind the same ``Camera`` protocol as the hardware.
 
-Image model, per shot (electrons unless a name says counts):
-- each occupied trap scatters Poisson(photons_per_atom * quantum_efficiency) photoelectrons spread over the
-  sensor by a pixel-integrated Gaussian PSF at the trap's sub-pixel position; split over pixels this is an
+Image model, per shot (electrons unless a name says counts; parameters from ``sim.imaging``, the lab's hidden
+truth, plus the camera's own settings):
+- an atom yields ``scattering_rate_hz * exposure_s * collection_efficiency * quantum_efficiency`` mean
+  photoelectrons, times its trap's brightness (``trap_brightness``: a Gaussian imaging-beam profile and a
+  seeded trap-to-trap spread) and times the fraction of the exposure it was there (``World.expose``: an
+  atom heated out mid-exposure is bright only until it leaves). They are Poisson and spread over the sensor
+  by a pixel-integrated Gaussian PSF at the trap's sub-pixel position; split over pixels this is an
   independent Poisson draw per pixel with mean ``N * fraction`` (Poisson thinning), which is what we draw;
-- every sensor pixel adds Poisson(background_photons_per_px * quantum_efficiency);
+- every sensor pixel adds Poisson(``background_photons_per_px_per_s * exposure_s * quantum_efficiency``) of
+  stray light and Poisson(``clock_induced_charge_e``) of clock-induced charge, which comes with every readout
+  whatever the exposure;
 - binning is on-chip: charge of a ``bx x by`` bin is summed *before* the EM register, so a binned pixel is
   one Poisson draw of the summed mean, amplified once and read once (this is why binning helps an EMCCD);
 - EM gain: ``Gamma(shape=n, scale=em_gain)`` for ``n > 0`` electrons, else 0;
@@ -48,9 +54,18 @@ from scipy.special import gammainc, log_ndtr, ndtr
 from drivers.sim.clock import SimClock
 from engine.config import CameraConfig, SystemConfig
 from engine.devices import DeviceError, FrameInfo
-from engine.psf import frame_shape, pixel_fractions, trap_positions_px
+from engine.imaging_calibration import Population
+from engine.psf import PsfModel, frame_shape, pixel_fractions, trap_positions_px
 
-__all__ = ["BackgroundTable", "ReadoutTime", "SimCamera", "background_table", "readout_time"]
+__all__ = [
+    "BackgroundTable",
+    "ReadoutTime",
+    "SimCamera",
+    "background_table",
+    "predicted_sum_statistics",
+    "readout_time",
+    "trap_brightness",
+]
 
 FRAME_TRANSFER_ROWS = 1037 + 2  # storage section + transition rows (CCD201-20)
 ROW_EXTRA_SHIFTS = 32 + 16  # dark reference + overscan pixels shifted with every row
@@ -58,6 +73,9 @@ READOUT_OFFSET_SHIFTS = 468 + 604 + 16  # distribution chain + multiplication ch
 BYTES_PER_PIXEL = 2
 ADC_MAX_COUNTS = 65535
 STAMP_RADIUS_SIGMAS = 5.0  # light beyond 5 sigma (< 1e-6 of it) is not rendered
+EM_EXCESS_NOISE_FACTOR = 2.0  # variance of a high-gain EM register's output: 2 * n * gain**2
+ADC_QUANTISATION_VAR = 1.0 / 12.0
+_BRIGHTNESS_STREAM = int.from_bytes(b"brightness", "big")  # spawn key of the brightness pattern under sim.seed
 
 FaultKind = Literal["timeout", "corrupt"]
 
@@ -113,23 +131,78 @@ def _stamps(config: SystemConfig) -> tuple[np.ndarray, np.ndarray]:
     return bin_idx.reshape(n, -1).astype(np.int64), frac.reshape(n, -1)
 
 
+def trap_brightness(config: SystemConfig) -> np.ndarray:
+    """``float64[ny * nx]``: each trap's atom brightness relative to the array's centre.
+
+    Two causes, as in a lab: the imaging beam's Gaussian profile, falling to ``beam_edge_brightness`` at the
+    array's corners (``b = edge ** (r / r_corner) ** 2`` with ``r`` the distance from the centre in sites),
+    and a trap-to-trap spread (trap depths differ, and with them the light shift and scattering rate):
+    a factor ``1 + brightness_spread * N(0, 1)``, clipped at 0, drawn from a stream of ``sim.seed`` of its
+    own, so the pattern is fixed for a seed (``seed: null``: a new pattern at every configuration).
+    """
+    arr, img = config.array, config.sim.imaging
+    rows, cols = np.divmod(np.arange(arr.n_traps), arr.nx)
+    cy, cx = (arr.ny - 1) / 2, (arr.nx - 1) / 2
+    r2_corner = cx**2 + cy**2
+    profile = img.beam_edge_brightness ** (((cols - cx) ** 2 + (rows - cy) ** 2) / r2_corner) if r2_corner else 1.0
+    rng = np.random.default_rng(np.random.SeedSequence(config.sim.seed, spawn_key=(_BRIGHTNESS_STREAM,)))
+    spread = np.clip(1.0 + img.brightness_spread * rng.standard_normal(arr.n_traps), 0.0, None)
+    return profile * spread
+
+
+def _electrons_per_exposure(config: SystemConfig) -> tuple[float, float]:
+    """(photoelectrons from an atom of brightness 1 there for the whole exposure, mean electrons of a binned
+    pixel with no atom: stray light and clock-induced charge of its ``bx * by`` sensor pixels)."""
+    cam, img = config.camera, config.sim.imaging
+    bx, by = cam.binning
+    atom_e = img.scattering_rate_hz * cam.exposure_s * img.collection_efficiency * img.quantum_efficiency
+    pixel_e = img.background_photons_per_px_per_s * cam.exposure_s * img.quantum_efficiency
+    return atom_e, (pixel_e + img.clock_induced_charge_e) * bx * by
+
+
+def predicted_sum_statistics(config: SystemConfig, psf: PsfModel) -> tuple[Population, Population]:
+    """The simulator's prediction of each detector weighted sum when the trap is empty and when it holds an
+    atom for the whole exposure (mean, std, skewness per trap, per-trap brightness included).
+
+    For tests and for choosing settings; the engine never calls it (its detection is its own). A frame pixel
+    with ``lam`` mean electrons is compound Poisson: ``n ~ Poisson(lam)`` electrons each multiplied into an
+    exponential of mean ``gain``, so its cumulants are ``lam * r! * gain**r``; read noise and ADC
+    quantisation add variance only. In counts divide by ``electrons_per_count**r``, add the bias to the
+    mean. Pixels are independent, so the weighted sum's cumulants are ``sum(w**r * kappa_r)``.
+    """
+    cam, img = config.camera, config.sim.imaging
+    atom_e, background_e = _electrons_per_exposure(config)
+    lam_empty = np.full(psf.light_fraction.shape, background_e)
+    lam_atom = lam_empty + atom_e * trap_brightness(config)[:, None] * psf.light_fraction
+    w = psf.weights.astype(np.float64)
+    g = cam.em_gain / img.electrons_per_count  # counts per electron entering the EM register
+    noise_var = (img.read_noise_e / img.electrons_per_count) ** 2 + ADC_QUANTISATION_VAR
+    populations = []
+    for lam in (lam_empty, lam_atom):
+        mean = (w * (img.bias_counts + lam * g)).sum(axis=1)
+        var = (w**2 * (EM_EXCESS_NOISE_FACTOR * lam * g**2 + noise_var)).sum(axis=1)
+        third = (w**3 * 6.0 * lam * g**3).sum(axis=1)
+        std = np.sqrt(var)
+        populations.append(Population(mean, std, third / std**3))
+    return populations[0], populations[1]
+
+
 @numba.njit(cache=True, nogil=True)
 def _expected_electrons(
-    occupied: np.ndarray,
+    atom_e: np.ndarray,
     stamp_idx: np.ndarray,
     stamp_frac: np.ndarray,
     background_e: float,
-    atom_e: float,
     out_mean_e: np.ndarray,
 ) -> None:
-    """Mean photoelectrons per binned pixel: uniform background plus every occupied trap's PSF stamp."""
+    """Mean electrons per binned pixel: uniform background plus the PSF stamp of every trap with light
+    (``atom_e[t]``: trap ``t``'s photoelectrons this exposure, 0 when empty)."""
     flat = out_mean_e.reshape(out_mean_e.size)
     flat[:] = background_e
-    occ = occupied.reshape(occupied.size)
-    for t in range(occ.size):
-        if occ[t]:
+    for t in range(atom_e.size):
+        if atom_e[t] > 0.0:
             for k in range(stamp_idx.shape[1]):
-                flat[stamp_idx[t, k]] += atom_e * stamp_frac[t, k]
+                flat[stamp_idx[t, k]] += atom_e[t] * stamp_frac[t, k]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -360,8 +433,9 @@ def _emccd_counts_split(
 class SimCamera:
     """A simulated EMCCD + frame grabber (implements ``engine.devices.Camera``).
 
-    ``atoms()`` is called at ``trigger()`` (the start of the exposure) and must return the static-trap
-    occupancy ``bool[ny, nx]``; the frame is rendered when it is read. Set ``fail_next_read`` to
+    ``atoms(t0_s, exposure_s)`` is called at ``trigger()`` and returns, per static trap (``[ny, nx]``), the
+    fraction of the exposure an atom was there (``World.expose``; a ``bool`` occupancy means "there
+    throughout"); the frame is rendered then and handed out by ``read``. Set ``fail_next_read`` to
     ``"timeout"`` (no frame arrives) or ``"corrupt"`` (the grabber reports a torn transfer) to make the next
     ``read`` fail with ``DeviceError``; the knob clears itself once used. ``fault`` does the same for every
     read until it is set back to None. ``reference=True`` renders with the literal per-pixel kernel
@@ -372,7 +446,7 @@ class SimCamera:
         self,
         config: SystemConfig,
         *,
-        atoms: Callable[[], np.ndarray],
+        atoms: Callable[[float, float], np.ndarray],
         clock: SimClock,
         rng: np.random.Generator,
         reference: bool = False,
@@ -386,7 +460,7 @@ class SimCamera:
         self.fault: FaultKind | None = None
         self._frame_index = -1
         self._t_exposure_start_s: float | None = None
-        self._occupancy = np.zeros((config.array.ny, config.array.nx), dtype=bool)
+        self._presence = np.zeros((config.array.ny, config.array.nx), dtype=np.float64)
         self.configure(config.camera)
         self._warm_up()
 
@@ -411,7 +485,7 @@ class SimCamera:
     def set_system_config(self, config: SystemConfig) -> None:
         """Adopt a new system configuration (array size and geometry included); between shots only."""
         self._system = config
-        self._occupancy = np.zeros((config.array.ny, config.array.nx), dtype=bool)
+        self._presence = np.zeros((config.array.ny, config.array.nx), dtype=np.float64)
         self.configure(config.camera)
 
     def configure(self, config: CameraConfig) -> None:
@@ -425,21 +499,24 @@ class SimCamera:
         self._readout = readout_time(cam)
         self._stamp_idx, self._stamp_frac = _stamps(self._system)
         self._mean_e = np.empty(self._frame_shape, dtype=np.float64)
-        bx, by = cam.binning
-        self._background_e = cam.background_photons_per_px * cam.quantum_efficiency * bx * by
-        self._atom_e = cam.photons_per_atom * cam.quantum_efficiency
+        img = self._system.sim.imaging
+        atom_e, self._background_e = _electrons_per_exposure(self._system)
+        self._trap_atom_e = atom_e * trap_brightness(self._system)  # a whole exposure's light, per trap
+        self._atom_e = np.empty_like(self._trap_atom_e)
         self._table = background_table(
-            self._background_e, cam.em_gain, cam.read_noise_e, cam.electrons_per_count, cam.bias_counts
+            self._background_e, cam.em_gain, img.read_noise_e, img.electrons_per_count, img.bias_counts
         )
         self._t_exposure_start_s = None
 
     def trigger(self) -> None:
-        """Start an exposure now: snapshot the atoms and the time. A new trigger discards an unread frame."""
-        occupancy = np.asarray(self._atoms(), dtype=bool)
-        if occupancy.shape != self._occupancy.shape:
-            raise ValueError(f"atoms() returned shape {occupancy.shape}, expected {self._occupancy.shape}")
-        self._occupancy[...] = occupancy
-        self._t_exposure_start_s = self._clock.now_s()
+        """Start an exposure now: ask the lab which atoms this exposure sees, and for how long each is there.
+        A new trigger discards an unread frame."""
+        t0_s = self._clock.now_s()
+        presence = np.asarray(self._atoms(t0_s, self._readout.exposure_s), dtype=np.float64)
+        if presence.shape != self._presence.shape:
+            raise ValueError(f"atoms() returned shape {presence.shape}, expected {self._presence.shape}")
+        self._presence[...] = presence
+        self._t_exposure_start_s = t0_s
         self._frame_index += 1
         # Render now, not at read(): on hardware the host is idle during the exposure and the frame arrives
         # by DMA, so the simulator's heavy rendering must not run between the frame and the engine's use of it.
@@ -489,7 +566,7 @@ class SimCamera:
         """Compile (or load) the render kernels now, so the first read costs no compile time; a scratch
         generator keeps the lab's random stream untouched."""
         scratch = np.zeros((1, 1), dtype=np.float64)
-        _expected_electrons(np.zeros((1, 1), dtype=bool), np.zeros((1, 1), dtype=np.int64), scratch, 0.0, 0.0, scratch)
+        _expected_electrons(np.zeros(1), np.zeros((1, 1), dtype=np.int64), scratch, 0.0, scratch)
         _emccd_counts(np.random.default_rng(0), scratch, 1.0, 0.0, 1.0, 0.0, np.zeros((1, 1), dtype=np.uint16))
         t = self._table
         _emccd_counts_split(
@@ -498,17 +575,16 @@ class SimCamera:
         )
 
     def _render(self, out: np.ndarray) -> None:
-        cam = self._system.camera
-        _expected_electrons(
-            self._occupancy, self._stamp_idx, self._stamp_frac, self._background_e, self._atom_e, self._mean_e
-        )
+        cam, img = self._system.camera, self._system.sim.imaging
+        np.multiply(self._trap_atom_e, self._presence.reshape(-1), out=self._atom_e)
+        _expected_electrons(self._atom_e, self._stamp_idx, self._stamp_frac, self._background_e, self._mean_e)
         if self.reference:
             _emccd_counts(
-                self._rng, self._mean_e, cam.em_gain, cam.read_noise_e, cam.electrons_per_count, cam.bias_counts, out
+                self._rng, self._mean_e, cam.em_gain, img.read_noise_e, img.electrons_per_count, img.bias_counts, out
             )
             return
         t = self._table
         _emccd_counts_split(
-            self._rng, self._mean_e, self._background_e, cam.em_gain, cam.read_noise_e, cam.electrons_per_count,
-            cam.bias_counts, t.prob, t.alias, t.value, t.bg_cdf, t.slow_cdf, out,
+            self._rng, self._mean_e, self._background_e, cam.em_gain, img.read_noise_e, img.electrons_per_count,
+            img.bias_counts, t.prob, t.alias, t.value, t.bg_cdf, t.slow_cdf, out,
         )  # fmt: skip

@@ -59,11 +59,11 @@ def build_sim_lab(config: SystemConfig) -> tuple[DeviceSet, SimLab]:
     world = World(config, clock=clock, rng=np.random.default_rng(world_seed))
     awg = SimAWG(world, clock, config)
 
-    def atoms_now() -> np.ndarray:
+    def exposure(t0_s: float, exposure_s: float) -> np.ndarray:
         awg.sync()
-        return world.occupancy()
+        return world.expose(t0_s, exposure_s)
 
-    camera = SimCamera(config, atoms=atoms_now, clock=clock, rng=np.random.default_rng(camera_seed))
+    camera = SimCamera(config, atoms=exposure, clock=clock, rng=np.random.default_rng(camera_seed))
     lab = SimLab(world, awg, camera)
     lab.configure(config)
     return DeviceSet(camera=camera, awg=awg, clock=clock), lab

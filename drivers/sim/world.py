@@ -52,6 +52,7 @@ class WorldCounters:
     lost_collision: int = 0
     lost_dropped: int = 0
     lost_released: int = 0
+    lost_imaging: int = 0
 
     @property
     def lost(self) -> int:
@@ -62,6 +63,7 @@ class WorldCounters:
             + self.lost_collision
             + self.lost_dropped
             + self.lost_released
+            + self.lost_imaging
         )
 
     def as_dict(self) -> dict[str, int]:
@@ -151,6 +153,7 @@ class World:
         self.survival_step = sim.survival_step
         self.vacuum_lifetime_s = sim.vacuum_lifetime_s
         self.lossless = sim.lossless if lossless is None else lossless
+        self._configure_imaging(config)
         if (arr.ny, arr.nx) != (self.ny, self.nx):
             self.nx, self.ny = arr.nx, arr.ny
             self._static = np.zeros((self.ny, self.nx), dtype=bool)
@@ -394,7 +397,53 @@ class World:
             self.apply_slot(*decoded.slot(i))
 
 
+    # --- imaging ---------------------------------------------------------------------------------------
+
+    def _configure_imaging(self, config: SystemConfig) -> None:
+        """Adopt ``sim.imaging``'s loss rate; a new seed starts the imaging stream afresh.
+
+        Imaging draws from a generator of its own (a child of ``sim.seed`` by a fixed spawn key), so how many
+        numbers the slots and the vacuum consume never changes which atoms an image loses.
+        """
+        self.imaging_loss_rate_hz = config.sim.imaging.loss_rate_hz
+        if not hasattr(self, "_imaging_rng") or self._imaging_seed != config.sim.seed:
+            self._imaging_seed = config.sim.seed
+            self._imaging_rng = np.random.default_rng(
+                np.random.SeedSequence(config.sim.seed, spawn_key=(_IMAGING_STREAM,))
+            )
+
+    def expose(self, t0_s: float, exposure_s: float) -> np.ndarray:
+        """Image the static traps from ``t0_s`` for ``exposure_s``: returns ``float64[ny, nx]``, the fraction of
+        the exposure each trap's atom was there (0: empty; 1: there throughout).
+
+        Scattering the imaging light heats atoms out of their traps at ``loss_rate_hz`` while the light is
+        on, so an atom survives the image with probability ``exp(-rate * exposure_s)`` (the imaging loss
+        grows with the exposure, as the scattered photons do). A lost atom leaves at a time ``t`` drawn from
+        the exponential law truncated to the exposure: with one uniform ``u`` per atom, the atom is lost when
+        ``u < 1 - exp(-rate * exposure_s)`` and then ``t = -ln(1 - u) / rate`` (the inverse CDF), and it is
+        bright for ``t / exposure_s`` of the image. Lost atoms leave the world at once (nothing moves atoms
+        during an exposure); vacuum loss keeps running on the world's clock as before. ``lossless`` turns
+        imaging loss off too.
+        """
+        if exposure_s <= 0:
+            raise ValueError(f"exposure_s must be positive (got {exposure_s})")
+        self.elapse_to(t0_s)
+        present = self._static.astype(np.float64)
+        rate_hz = self.imaging_loss_rate_hz
+        if self.lossless or rate_hz == 0.0:
+            return present
+        atoms = np.flatnonzero(self._static)
+        u = self._imaging_rng.random(atoms.size)
+        lost = u < -np.expm1(-rate_hz * exposure_s)
+        gone = atoms[lost]
+        present.flat[gone] = -np.log1p(-u[lost]) / (rate_hz * exposure_s)
+        self._static.flat[gone] = False
+        self.counters.lost_imaging += int(gone.size)
+        return present
+
+
 _NO_TRACKS = np.zeros((0, 4), dtype=np.float32)
+_IMAGING_STREAM = int.from_bytes(b"imaging", "big")  # spawn key of the imaging loss stream under sim.seed
 
 
 # --- kernels ---------------------------------------------------------------------------------------------

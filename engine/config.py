@@ -255,7 +255,8 @@ class SimImagingConfig(_Model):
     bias_counts: Annotated[float, Field(ge=0, le=65535)] = 500.0
     electrons_per_count: Annotated[float, Field(gt=0, le=1e6)] = 20.0
     loss_rate_hz: Annotated[float, Field(ge=0, le=1e4)] = Field(
-        default=0.5, description="probability per second of exposure that an imaged atom is heated out (0.5: 1 % per 20 ms)"
+        default=0.5,
+        description="probability per second of exposure that an imaged atom is heated out (0.5: 1 % per 20 ms)",
     )
     brightness_spread: Annotated[float, Field(ge=0, le=1)] = Field(
         default=0.05, description="relative rms trap-to-trap variation of an atom's brightness (trap depth), seeded"

@@ -44,7 +44,8 @@ def threshold_calibration(images: np.ndarray, config: SystemConfig) -> dict:
         empty = Population(np.float64(cal.mean_empty), np.float64(cal.std_empty), np.float64(cal.skew_empty))
         atom = Population(np.float64(cal.mean_atom), np.float64(cal.std_atom), np.float64(cal.skew_atom))
         current_threshold = float(config.imaging.threshold)
-        current_fidelity = 1.0 - float(error_probability(np.float64(current_threshold), empty, atom, cal.fraction_filled))
+        current_error = error_probability(np.float64(current_threshold), empty, atom, cal.fraction_filled)
+        current_fidelity = 1.0 - float(current_error)
     return {
         "kind": "threshold",
         "images": int(len(images)),

@@ -293,7 +293,8 @@ def test_halving_the_exposure_raises_the_detection_error_as_photon_statistics_sa
         p_error = float(error_probability(detector.thresholds.astype(np.float64), empty, atom, LOADING).mean())
         n = truth.size
         # binomial spread of the count, plus 15 % for the model (gamma shapes, the fitted threshold's scatter)
-        assert abs(errors - n * p_error) <= 4 * np.sqrt(n * p_error) + 0.15 * n * p_error + 2, (exposure_s, errors, n * p_error)
+        tolerance = 4 * np.sqrt(n * p_error) + 0.15 * n * p_error + 2
+        assert abs(errors - n * p_error) <= tolerance, (exposure_s, errors, n * p_error)
         measured.append(errors / n)
         predicted.append(p_error)
     assert measured[1] > 10 * measured[0] and predicted[1] > 10 * predicted[0]

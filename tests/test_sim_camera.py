@@ -13,7 +13,9 @@ from engine.config import CameraConfig, SystemConfig
 from engine.devices import Camera, DeviceError
 
 
-def grid_config(ny: int, nx: int, roi_h: int, roi_w: int, imaging: dict | None = None, **camera: object) -> SystemConfig:
+def grid_config(
+    ny: int, nx: int, roi_h: int, roi_w: int, imaging: dict | None = None, **camera: object
+) -> SystemConfig:
     return SystemConfig.model_validate(
         {
             "array": {"nx": nx, "ny": ny, "trap_source": "slm"},
@@ -42,7 +44,8 @@ def atom_counts(config: SystemConfig) -> float:
 def background_e(config: SystemConfig) -> float:
     """Mean electrons of an unbinned pixel without atom light: stray light over the exposure plus CIC."""
     img = config.sim.imaging
-    return img.background_photons_per_px_per_s * config.camera.exposure_s * img.quantum_efficiency + img.clock_induced_charge_e
+    stray_e = img.background_photons_per_px_per_s * config.camera.exposure_s * img.quantum_efficiency
+    return stray_e + img.clock_induced_charge_e
 
 
 def make_camera(config: SystemConfig, occupancy: np.ndarray, seed: int = 0) -> tuple[SimCamera, SimClock]:

@@ -31,6 +31,8 @@ __all__ = ["Dashboard", "LabClient", "target_presets"]
 
 log = logging.getLogger("llrs.dashboard")
 
+CALIBRATION_IMAGES = 40  # frames a threshold fit takes from the dashboard (as the API's default)
+
 
 class LabClient(Protocol):
     """The part of ``server.service.LabService`` the dashboard drives (the same calls the REST API makes)."""
@@ -51,6 +53,10 @@ class LabClient(Protocol):
     def shot(self, *, override: dict[str, Any] | None = None) -> ShotRecord: ...
 
     def patch_config(self, patch: dict[str, Any]) -> SystemConfig: ...
+
+    def calibrate_threshold(self, *, images: int = 40) -> dict[str, Any]: ...
+
+    def apply_calibration(self, calibration_id: str) -> dict[str, Any]: ...
 
     def add_listener(self, callback: Callable[[ShotRecord], None]) -> None: ...
 
@@ -108,6 +114,7 @@ class Dashboard:
         self._config_digest: str | None = None
         self._presets: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self._positions = np.zeros((0, 2))
+        self._threshold_fit: str | None = None  # id of the last threshold fit, until it is applied
         self.updates = 0  # drawn shots, for tests
 
     # -- life cycle -------------------------------------------------------------------------------------------
@@ -159,6 +166,10 @@ class Dashboard:
             self.d_target = gui.add_dropdown("Target", options=list(self._presets), initial_value="as configured")
             self.n_max_cycles = gui.add_number("Max cycles", initial_value=cfg.loop.max_cycles, min=1, max=100, step=1)
             self.b_problem = gui.add_button("Apply problem")
+        with gui.add_folder("Calibration"):
+            self.b_fit_threshold = gui.add_button(f"Fit threshold ({CALIBRATION_IMAGES} frames)")
+            self.h_calibration = gui.add_html("")
+            self.b_apply_threshold = gui.add_button("Apply fitted threshold", disabled=True)
         self.f_sim = gui.add_folder("Simulated lab")
         with self.f_sim:
             self.s_loading = gui.add_slider("Loading prob.", min=0.05, max=1.0, step=0.01, initial_value=cfg.sim.loading_probability)
@@ -209,6 +220,8 @@ class Dashboard:
         self.b_once.on_click(lambda event: self._command("one shot", self.service.shot))
         self.b_problem.on_click(lambda event: self._apply(self._problem_patch(), "problem"))
         self.b_sim.on_click(lambda event: self._apply(self._sim_patch(), "simulation"))
+        self.b_fit_threshold.on_click(lambda event: self._fit_threshold())
+        self.b_apply_threshold.on_click(lambda event: self._apply_threshold())
         self._sync_config(force=True)
 
     # -- controls ---------------------------------------------------------------------------------------------
@@ -259,6 +272,31 @@ class Dashboard:
             return
         self._say(f"{what} applied (between shots)")
         self._new_shot.set()
+
+    def _fit_threshold(self) -> None:
+        """Fit the occupancy threshold to fresh frames and show it beside the configured one (nothing applied)."""
+        try:
+            fit = self.service.calibrate_threshold(images=CALIBRATION_IMAGES)
+        except Exception as err:  # shown to the person; the dashboard keeps running
+            self._say(f"threshold fit failed: {err}", error=True)
+            return
+        self._threshold_fit = fit["id"]
+        if fit["current_threshold"] is None:
+            current = "configured: none (the engine fitted one when the configuration was applied)"
+        else:
+            current = f"configured: {fit['current_threshold']:.1f} counts, error {1 - fit['current_fidelity']:.1e}"
+        self.h_calibration.content = (
+            f'<div style="font-size:12px">fitted: {fit["threshold"]:.1f} counts, predicted error '
+            f"{1 - fit['fidelity']:.1e} ({fit['images']} frames, {fit['fraction_filled']:.0%} filled)<br>{current}</div>"
+        )
+        self.b_apply_threshold.disabled = False
+        self._say("threshold fitted; apply it to use it")
+
+    def _apply_threshold(self) -> None:
+        if self._threshold_fit is not None:
+            fit, self._threshold_fit = self._threshold_fit, None
+            self.b_apply_threshold.disabled = True
+            self._command("apply fitted threshold", lambda: self.service.apply_calibration(fit))
 
     def _sync_config(self, *, force: bool = False) -> None:
         """Show the running configuration in the controls (it may have changed through the API)."""

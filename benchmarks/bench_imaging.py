@@ -17,7 +17,7 @@ import numpy as np
 from drivers.sim.camera import SimCamera
 from drivers.sim.clock import SimClock
 from engine.config import SystemConfig
-from engine.imaging import Detector, threshold_reference, weighted_sums_reference
+from engine.imaging import Detector, calibration_frames, threshold_reference, weighted_sums_reference
 
 
 def _configs() -> dict[str, SystemConfig]:
@@ -49,11 +49,14 @@ def main() -> None:
     print(f"{'configuration':36s} {'implementation':16s} {'median us':>10s} {'p99 us':>10s}")
     for name, config in _configs().items():
         occupancy = rng.random((config.array.ny, config.array.nx)) < 0.6
-        camera = SimCamera(config, atoms=lambda: occupancy, clock=SimClock(), rng=rng)
-        image = np.empty(camera.frame_shape, dtype=np.uint16)
-        camera.trigger()
-        camera.read(image, timeout_s=1.0)
+        camera = SimCamera(config, atoms=lambda *_: occupancy, clock=SimClock(), rng=rng)
+        frames = np.empty((calibration_frames(config.array.n_traps), *camera.frame_shape), dtype=np.uint16)
+        for frame in frames:
+            camera.trigger()
+            camera.read(frame, timeout_s=1.0)
         detector = Detector(config)
+        detector.calibrate(frames)  # the threshold from frames, as the engine fits it at apply
+        image = frames[0]
         out = np.empty_like(occupancy)
         detector.detect(image, out)
         assert np.array_equal(out, occupancy), "benchmark frame misdetected"

@@ -512,16 +512,17 @@ class SimCamera:
         """Start an exposure now: ask the lab which atoms this exposure sees, and for how long each is there.
         A new trigger discards an unread frame."""
         t0_s = self._clock.now_s()
-        presence = np.asarray(self._atoms(t0_s, self._readout.exposure_s), dtype=np.float64)
-        if presence.shape != self._presence.shape:
-            raise ValueError(f"atoms() returned shape {presence.shape}, expected {self._presence.shape}")
-        self._presence[...] = presence
+        # Render now, not at read(): on hardware the host is idle during the exposure and the frame arrives
+        # by DMA, so the simulator's heavy work (the world's imaging, the rendering) must not run between the
+        # frame and the engine's use of it, nor cost clock time.
+        with self._clock.paused():
+            presence = np.asarray(self._atoms(t0_s, self._readout.exposure_s), dtype=np.float64)
+            if presence.shape != self._presence.shape:
+                raise ValueError(f"atoms() returned shape {presence.shape}, expected {self._presence.shape}")
+            self._presence[...] = presence
+            self._render(self._frame)
         self._t_exposure_start_s = t0_s
         self._frame_index += 1
-        # Render now, not at read(): on hardware the host is idle during the exposure and the frame arrives
-        # by DMA, so the simulator's heavy rendering must not run between the frame and the engine's use of it.
-        with self._clock.paused():
-            self._render(self._frame)
 
     def read(self, out: np.ndarray, *, timeout_s: float) -> FrameInfo:
         """Wait (in simulated time) for the triggered frame and render it into ``out`` (``uint16[h, w]``)."""

@@ -186,9 +186,9 @@ def threshold_reference(counts: np.ndarray, thresholds: np.ndarray) -> np.ndarra
     return counts > thresholds
 
 
-#: Weighted sums a threshold calibration at configure time collects (about 1,000 per population at 50 %
-#: filling: the fitted means and widths then carry ~3 % relative error on the width, well inside what moves
-#: the minimum-error threshold noticeably).
+#: Weighted sums a threshold calibration at configure time collects: about 1,000 per population at 50 %
+#: filling, so each fitted width carries ~2 % relative error (1 / sqrt(2n)) and the threshold, which sits in
+#: a flat valley of the error rate, moves by a small fraction of a population's width.
 CALIBRATION_READINGS = 2000
 
 

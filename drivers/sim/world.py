@@ -396,7 +396,6 @@ class World:
                 self.elapse_to(t0_s + i * slot_s)
             self.apply_slot(*decoded.slot(i))
 
-
     # --- imaging ---------------------------------------------------------------------------------------
 
     def _configure_imaging(self, config: SystemConfig) -> None:

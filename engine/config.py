@@ -20,6 +20,8 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from engine.timing import REPLAY_HOST_S, STAGES
+
 __all__ = [
     "ArrayConfig",
     "AWGConfig",
@@ -238,8 +240,24 @@ class SimConfig(_Model):
     survival_step: Fraction = 0.985
     vacuum_lifetime_s: Annotated[float, Field(gt=0, le=1e9)] = 60.0
     lossless: bool = False
-    time: Literal["simulated", "realtime"] = "simulated"
+    time: Literal["simulated", "realtime", "replay"] = Field(
+        default="simulated",
+        description="simulated: device waits skipped, host computation at wall-clock speed; realtime: device waits "
+        "really waited; replay: no wall clock at all, each host stage charged replay_host_s (a seed replays exactly)",
+    )
+    replay_host_s: dict[str, Annotated[float, Field(ge=0, le=1)]] = Field(
+        default_factory=lambda: dict(REPLAY_HOST_S),
+        description="replay time only: seconds charged per host stage (engine.timing.STAGES names); unlisted stages "
+        "cost nothing but their device waits",
+    )
     faults: FaultConfig = FaultConfig()
+
+    @model_validator(mode="after")
+    def _known_replay_stages(self) -> SimConfig:
+        unknown = sorted(set(self.replay_host_s) - set(STAGES))
+        if unknown:
+            raise ValueError(f"sim.replay_host_s names unknown stages {unknown}; stages are {list(STAGES)}")
+        return self
 
 
 class DevicesConfig(_Model):

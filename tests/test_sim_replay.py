@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from sim_signals import grid_config
 
 from drivers.sim.world import World
+from engine.config import ConfigError, config_from_dict
+from server.cli import main as cli_main
 
 
 def _tracks(*rows: tuple[float, float, float, float]) -> np.ndarray:
@@ -75,3 +81,34 @@ def test_loading_does_not_depend_on_what_moves_and_vacuum_drew() -> None:
         _play(world, np.linspace(0.01, 0.5, 14), np.zeros(0))
         loads.append(world.load().copy())
     assert np.array_equal(loads[0], loads[1])
+
+
+# --- llrs run in replay time -------------------------------------------------------------------------------
+
+_BUSY_LOOP = "import time\nend = time.monotonic() + 120\nwhile time.monotonic() < end:\n    pass\n"
+
+
+def test_llrs_run_replays_a_seed_exactly_under_cpu_load(capsys: pytest.CaptureFixture[str]) -> None:
+    """Three runs of the same seed, with CPU-bound processes competing for the cores: identical shots, atom for
+    atom (outcomes, cycles, per-cycle occupancy, the world's final atoms, and even the stage times)."""
+    busy = [subprocess.Popen([sys.executable, "-c", _BUSY_LOOP]) for _ in range(2)]  # ends by itself in 120 s
+    try:
+        runs = []
+        for _ in range(3):
+            args = ["run", "--config", "examples/grid-16x32.yaml", "--shots", "4", "--seed", "7", "--time", "replay"]
+            assert cli_main([*args, "--json"]) == 0
+            runs.append(json.loads(capsys.readouterr().out))
+    finally:
+        for process in busy:
+            process.kill()
+            process.wait()
+    first = runs[0]
+    assert len(first["per_shot"]) == 4 and first["cycles_mean"] > 0  # shots that really rearranged
+    assert all(len(s["occupancy"]) == len(s["slots"]) for s in first["per_shot"])
+    for run in runs[1:]:
+        assert run == first
+
+
+def test_replay_charges_rejects_unknown_stage_names() -> None:
+    with pytest.raises(ConfigError, match="replay_host_s"):
+        config_from_dict({"sim": {"replay_host_s": {"III.solver": 1e-5}}})

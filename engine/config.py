@@ -67,7 +67,13 @@ class ToneAxisConfig(_Model):
     start_hz: Annotated[float, Field(gt=0, le=10e9)] = 80e6
     spacing_hz: Annotated[float, Field(gt=0, le=1e9)] = 1e6
     amplitude: Annotated[float, Field(gt=0, le=1)] = 0.015
-    phases: Literal["schroeder", "zero"] = "schroeder"
+    phases: Literal["continuous", "schroeder", "zero"] = Field(
+        default="continuous",
+        description="continuous: site phases chosen so that every one-site move is a pure min-jerk (or tanh/erf) "
+        "frequency ramp that ends exactly on the next site's phase (the comb is then a time-shifted zero-phase "
+        "comb: peak = sum of amplitudes, never clipping); schroeder / zero: low / high crest factor, and moves "
+        "carry an end-pinned phase correction (up to ~0.94/slot_duration_s Hz off the shape mid-move)",
+    )
     csv: str | None = Field(default=None, description="path to an alpha,nu,phi CSV; overrides the comb")
 
 

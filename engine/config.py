@@ -31,6 +31,7 @@ __all__ = [
     "FaultConfig",
     "ImagingConfig",
     "LoopConfig",
+    "MoveLossConfig",
     "SimConfig",
     "SolverConfig",
     "SystemConfig",
@@ -237,6 +238,30 @@ class FaultConfig(_Model):
     disk_full: bool = Field(default=False, description="writing shot records fails as on a full disk")
 
 
+class MoveLossConfig(_Model):
+    """How the speed of a move costs atoms in the simulated lab (``drivers/sim/move_loss.py``).
+
+    With ``site_spacing_um`` set, every transfer and step survives with ``sim.survival_*`` (everything that does
+    not depend on speed) times the survival the trap physics gives for ``waveforms.slot_duration_s`` and
+    ``waveforms.shape``: spilling over the barrier the move's peak acceleration leaves, the oscillation the
+    move leaves behind, and the non-adiabatic depth ramps of extract/implant. Defaults: rubidium-87 in a
+    1 mK, 1 um-waist tweezer at 15 uK (docs/simulation.md gives the sources). Left unset (the default), the
+    model is off and ``sim.survival_*`` apply at any speed, as the examples' 10 us slots need: with these
+    defaults and 4 um between sites, a one-site min-jerk move needs about 20 us.
+    """
+
+    site_spacing_um: Annotated[float, Field(gt=0, le=1000)] | None = Field(
+        default=None, description="distance between neighbouring sites at the atoms; null turns the speed model off"
+    )
+    tweezer_depth_mk: Annotated[float, Field(gt=0, le=100)] = 1.0
+    static_depth_mk: Annotated[float, Field(gt=0, le=100)] = Field(
+        default=1.0, description="depth of the static (SLM) traps an atom is implanted into"
+    )
+    waist_um: Annotated[float, Field(gt=0, le=100)] = 1.0
+    temperature_uk: Annotated[float, Field(gt=0, le=10000)] = 15.0
+    atom_mass_amu: Annotated[float, Field(gt=0, le=1000)] = Field(default=86.909, description="rubidium-87")
+
+
 class SimConfig(_Model):
     """The simulated lab: atoms, loss and time."""
 
@@ -256,6 +281,7 @@ class SimConfig(_Model):
         description="replay time only: seconds charged per host stage (engine.timing.STAGES names); unlisted stages "
         "cost nothing but their device waits",
     )
+    moves: MoveLossConfig = MoveLossConfig()
     faults: FaultConfig = FaultConfig()
 
     @model_validator(mode="after")

@@ -11,8 +11,9 @@ Two kinds of trap, following ``array.trap_source``:
 - ``aod``: a 1D chain whose traps are the x tones themselves. An atom follows its tone's track (a step when it
   moves); a tone that fades out while holding an atom loses it, and an atom where no tone starts is lost.
 
-Loss: ``survival_transfer`` per extract/implant, ``survival_step`` per one-site move, and vacuum loss with
-lifetime ``vacuum_lifetime_s``. ``lossless`` turns all of it off (collisions and dropped atoms still lose atoms:
+Loss: ``survival_transfer`` per extract/implant, ``survival_step`` per one-site move (times the speed
+model's survival for the slot's duration and shape when ``sim.moves.site_spacing_um`` is set), and vacuum loss
+with lifetime ``vacuum_lifetime_s``. ``lossless`` turns all of it off (collisions and dropped atoms still lose atoms:
 they are mistakes, not noise). Counters record every cause.
 
 Vacuum loss as background-gas hits: every site (each static trap and each tweezer position) is hit at the
@@ -46,6 +47,7 @@ import numpy as np
 from numba import njit
 
 from drivers.sim.decode import FULL_FRACTION, DecodedSegment
+from drivers.sim.move_loss import move_survival, trap_parameters
 from engine.config import SystemConfig
 from engine.devices import Clock
 
@@ -163,6 +165,13 @@ class World:
         self.loading_probability = sim.loading_probability
         self.survival_transfer = sim.survival_transfer
         self.survival_step = sim.survival_step
+        if sim.moves.site_spacing_um is not None:  # speed costs atoms: see drivers/sim/move_loss.py
+            wf = config.waveforms
+            p_transfer, p_step = move_survival(
+                wf.slot_duration_s, wf.shape, wf.shape_sharpness, sim.moves.site_spacing_um, trap_parameters(sim.moves)
+            )
+            self.survival_transfer *= p_transfer
+            self.survival_step *= p_step
         lossless = sim.lossless if lossless is None else lossless
         vacuum_changed = (sim.vacuum_lifetime_s, lossless) != (self.vacuum_lifetime_s, self.lossless)
         self.vacuum_lifetime_s = sim.vacuum_lifetime_s

@@ -109,7 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--time",
         choices=["simulated", "realtime", "replay"],
         default=None,
-        help="simulated lab's clock (overrides sim.time); replay charges modelled host times, so a seed replays exactly",
+        help="simulated lab's clock (overrides sim.time); replay charges modelled host times: a seed replays exactly",
     )
     run.add_argument(
         "--json", action="store_true", help="print one JSON object (summary and, per shot, outcome and occupancies)"

@@ -20,8 +20,16 @@ from drivers.sim.move_loss import (
 )
 from drivers.sim.world import World
 
-RB87 = TrapParameters(tweezer_depth_mk=1.0, static_depth_mk=1.0, waist_um=1.0, temperature_uk=15.0, atom_mass_amu=86.909)
-WARM = TrapParameters(tweezer_depth_mk=1.0, static_depth_mk=1.0, waist_um=1.0, temperature_uk=40.0, atom_mass_amu=86.909)
+
+
+def rb87(**over: float) -> TrapParameters:
+    """Rubidium-87 in 1 mK, 1 um-waist traps at 15 uK (the MoveLossConfig defaults), with ``over`` changed."""
+    values = {"tweezer_depth_mk": 1.0, "static_depth_mk": 1.0, "waist_um": 1.0, "temperature_uk": 15.0}
+    return TrapParameters(**{**values, **over}, atom_mass_amu=86.909)
+
+
+RB87 = rb87()
+WARM = rb87(temperature_uk=40.0)
 
 
 def test_shorter_slots_lose_more_atoms_per_step() -> None:
@@ -59,8 +67,9 @@ def test_depth_ramps_are_sudden_when_short_and_adiabatic_when_long() -> None:
 
 
 def test_fast_implant_into_a_shallow_static_trap_loses_atoms() -> None:
-    shallow = TrapParameters(tweezer_depth_mk=1.0, static_depth_mk=0.3, waist_um=1.0, temperature_uk=40.0, atom_mass_amu=86.909)
-    fast, slow = transfer_survival(1e-6, "min-jerk", 6.0, shallow), transfer_survival(100e-6, "min-jerk", 6.0, shallow)
+    shallow = rb87(static_depth_mk=0.3, temperature_uk=40.0)
+    fast = transfer_survival(1e-6, "min-jerk", 6.0, shallow)
+    slow = transfer_survival(100e-6, "min-jerk", 6.0, shallow)
     assert fast < slow < 1.0
     # the slow limit: adiabatic compression (kT grows as omega, by sqrt(1.3 / 0.3)) then decompression back to
     # the initial thermal state in U_s: P(E < U) = gammainc(3, U / kT) for each, the transfer the pair's root
@@ -83,15 +92,13 @@ def test_world_charges_the_speed_model_on_top_of_the_configured_survival() -> No
 
 def test_world_loses_steps_at_the_rate_the_model_gives() -> None:
     """Monte Carlo: every atom of a 64-site chain steps right and back 200 times at 10 us."""
-    cfg = chain_config(
-        64, sim={"survival_step": 1.0, "vacuum_lifetime_s": 1e9, "moves": {"site_spacing_um": 1.0, "temperature_uk": 40.0}}
-    )
+    moves = {"site_spacing_um": 1.0, "temperature_uk": 40.0}
+    cfg = chain_config(64, sim={"survival_step": 1.0, "vacuum_lifetime_s": 1e9, "moves": moves})
     world = World(cfg, rng=np.random.default_rng(3))
     p = world.survival_step
     assert 0.9 < p < 0.999
     right = np.array([(k, k + 1, 1, 1) for k in range(0, 63, 2)], dtype=np.float32)
     left = np.array([(k + 1, k, 1, 1) for k in range(0, 63, 2)], dtype=np.float32)
-    steps = lost = 0
     for _ in range(200):
         atoms = np.zeros(64, bool)
         atoms[0::2] = True

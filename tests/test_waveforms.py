@@ -142,7 +142,8 @@ def _tweezer_track(cfg, k: int) -> tuple[np.ndarray, np.ndarray]:
         move = b.synthesize("x", INNER_UP, k, exact=True) + b.synthesize("x", STATIC, k, exact=True)
     else:
         move = b.synthesize("x", MOVE_UP, k, exact=True)
-    samples = np.concatenate([b.synthesize("x", STATIC, k, exact=True), move, b.synthesize("x", STATIC, k + 1, exact=True)])
+    before, after = b.synthesize("x", STATIC, k, exact=True), b.synthesize("x", STATIC, k + 1, exact=True)
+    samples = np.concatenate([before, move, after])
     phase = np.unwrap(np.angle(hilbert(samples)))
     t = axis_tones(cfg, "x")
     freq = np.diff(phase) / (2 * np.pi) * cfg.waveforms.sample_rate_hz  # between samples j and j + 1

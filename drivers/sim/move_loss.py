@@ -170,7 +170,9 @@ def _husimi_q(omega_sq: np.ndarray, duration_s: float) -> float:
     return ((dc * dc + omega_f**2 * c * c) + omega_i**2 * (ds * ds + omega_f**2 * s * s)) / (2.0 * omega_i * omega_f)
 
 
-def _ramp_q(from_mk: float, to_mk: float, duration_s: float, shape: str, sharpness: float, trap: TrapParameters) -> float:
+def _ramp_q(
+    from_mk: float, to_mk: float, duration_s: float, shape: str, sharpness: float, trap: TrapParameters
+) -> float:
     """Q of a depth ramp ``from -> to`` along the shape over the slot (1 when adiabatic)."""
     omega_min = trap.radial_omega(min(from_mk, to_mk))
     if omega_min * duration_s > _ADIABATIC_RADIANS:
@@ -199,7 +201,8 @@ def move_survival(
     """``(p_transfer, p_step)`` from the speed of a slot alone; multiply by the speed-independent survivals."""
     if not slot_duration_s > 0 or not site_spacing_um > 0:
         raise ValueError(
-            f"move_survival needs a positive slot duration and site spacing (got {slot_duration_s} s, {site_spacing_um} um)"
+            "move_survival needs a positive slot duration and site spacing "
+            f"(got {slot_duration_s} s, {site_spacing_um} um)"
         )
     return (
         transfer_survival(slot_duration_s, shape, sharpness, trap),

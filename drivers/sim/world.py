@@ -255,7 +255,9 @@ class World:
         done = False
         while not done:
             u.ensure(64)
-            u.pos, lost, done = _vacuum(self._static, self._held, self._next_hit_s, t_s, u.buf, u.pos, self.vacuum_lifetime_s)
+            u.pos, lost, done = _vacuum(
+                self._static, self._held, self._next_hit_s, t_s, u.buf, u.pos, self.vacuum_lifetime_s
+            )
             self.counters.lost_vacuum += lost
         self._first_hit_s = float(self._next_hit_s.min())
 

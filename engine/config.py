@@ -20,6 +20,8 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from engine.timing import REPLAY_HOST_S, STAGES
+
 __all__ = [
     "ArrayConfig",
     "AWGConfig",
@@ -29,6 +31,7 @@ __all__ = [
     "FaultConfig",
     "ImagingConfig",
     "LoopConfig",
+    "MoveLossConfig",
     "SimConfig",
     "SimImagingConfig",
     "SolverConfig",
@@ -66,7 +69,13 @@ class ToneAxisConfig(_Model):
     start_hz: Annotated[float, Field(gt=0, le=10e9)] = 80e6
     spacing_hz: Annotated[float, Field(gt=0, le=1e9)] = 1e6
     amplitude: Annotated[float, Field(gt=0, le=1)] = 0.015
-    phases: Literal["schroeder", "zero"] = "schroeder"
+    phases: Literal["continuous", "schroeder", "zero"] = Field(
+        default="continuous",
+        description="continuous: site phases chosen so that every one-site move is a pure min-jerk (or tanh/erf) "
+        "frequency ramp that ends exactly on the next site's phase (the comb is then a time-shifted zero-phase "
+        "comb: peak = sum of amplitudes, never clipping); schroeder / zero: low / high crest factor, and moves "
+        "carry an end-pinned phase correction (up to ~0.94/slot_duration_s Hz off the shape mid-move)",
+    )
     csv: str | None = Field(default=None, description="path to an alpha,nu,phi CSV; overrides the comb")
 
 
@@ -266,6 +275,30 @@ class SimImagingConfig(_Model):
     )
 
 
+class MoveLossConfig(_Model):
+    """How the speed of a move costs atoms in the simulated lab (``drivers/sim/move_loss.py``).
+
+    With ``site_spacing_um`` set, every transfer and step survives with ``sim.survival_*`` (everything that does
+    not depend on speed) times the survival the trap physics gives for ``waveforms.slot_duration_s`` and
+    ``waveforms.shape``: spilling over the barrier the move's peak acceleration leaves, the oscillation the
+    move leaves behind, and the non-adiabatic depth ramps of extract/implant. Defaults: rubidium-87 in a
+    1 mK, 1 um-waist tweezer at 15 uK (docs/simulation.md gives the sources). Left unset (the default), the
+    model is off and ``sim.survival_*`` apply at any speed, as the examples' 10 us slots need: with these
+    defaults and 4 um between sites, a one-site min-jerk move needs about 20 us.
+    """
+
+    site_spacing_um: Annotated[float, Field(gt=0, le=1000)] | None = Field(
+        default=None, description="distance between neighbouring sites at the atoms; null turns the speed model off"
+    )
+    tweezer_depth_mk: Annotated[float, Field(gt=0, le=100)] = 1.0
+    static_depth_mk: Annotated[float, Field(gt=0, le=100)] = Field(
+        default=1.0, description="depth of the static (SLM) traps an atom is implanted into"
+    )
+    waist_um: Annotated[float, Field(gt=0, le=100)] = 1.0
+    temperature_uk: Annotated[float, Field(gt=0, le=10000)] = 15.0
+    atom_mass_amu: Annotated[float, Field(gt=0, le=1000)] = Field(default=86.909, description="rubidium-87")
+
+
 class SimConfig(_Model):
     """The simulated lab: atoms, loss and time."""
 
@@ -275,9 +308,26 @@ class SimConfig(_Model):
     survival_step: Fraction = 0.985
     vacuum_lifetime_s: Annotated[float, Field(gt=0, le=1e9)] = 60.0
     lossless: bool = False
-    time: Literal["simulated", "realtime"] = "simulated"
+    time: Literal["simulated", "realtime", "replay"] = Field(
+        default="simulated",
+        description="simulated: device waits skipped, host computation at wall-clock speed; realtime: device waits "
+        "really waited; replay: no wall clock at all, each host stage charged replay_host_s (a seed replays exactly)",
+    )
+    replay_host_s: dict[str, Annotated[float, Field(ge=0, le=1)]] = Field(
+        default_factory=lambda: dict(REPLAY_HOST_S),
+        description="replay time only: seconds charged per host stage (engine.timing.STAGES names); unlisted stages "
+        "cost nothing but their device waits",
+    )
+    moves: MoveLossConfig = MoveLossConfig()
     faults: FaultConfig = FaultConfig()
     imaging: SimImagingConfig = SimImagingConfig()
+
+    @model_validator(mode="after")
+    def _known_replay_stages(self) -> SimConfig:
+        unknown = sorted(set(self.replay_host_s) - set(STAGES))
+        if unknown:
+            raise ValueError(f"sim.replay_host_s names unknown stages {unknown}; stages are {list(STAGES)}")
+        return self
 
 
 class DevicesConfig(_Model):

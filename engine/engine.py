@@ -126,7 +126,7 @@ class Engine:
             occupancy=np.zeros((arr.ny, arr.nx), dtype=bool),
             scratch_occupancy=np.zeros((arr.ny, arr.nx), dtype=bool),
             history=np.zeros((config.loop.max_cycles + 1, arr.ny, arr.nx), dtype=bool),
-            timer=StageTimer(dev.clock.now_s, config.loop.max_cycles + 1),
+            timer=StageTimer(dev.clock.now_s, config.loop.max_cycles + 1, charge=getattr(dev.clock, "charge", None)),
         )
         pipeline.solver.check_target(target)
         target_filled(pipeline.occupancy, target)  # compile (or load) before the engine reports ready

@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["STAGES", "PAPER_TABLE1_MS", "StageTimer", "summarize_us"]
+__all__ = ["STAGES", "PAPER_TABLE1_MS", "REPLAY_HOST_S", "StageTimer", "summarize_us"]
 
 #: Stage names, in loop order. The paper's Table 1 rows they correspond to are in PAPER_TABLE1_MS.
 STAGES: tuple[str, ...] = (
@@ -38,6 +38,21 @@ PAPER_TABLE1_MS: dict[str, dict[str, float]] = {
               "III.batch": 0.077, "IV.lookup": 0.038, "IV.upload": 0.574, "IV.sequence": 0.023, "V.stream": 8.496},
 }
 
+#: Host time charged per lap of a stage when the simulated lab replays (``sim.time: replay``): the in-loop
+#: per-cycle medians of the 16x32 problem in docs/benchmarks.md (``llrs bench runtime``, 2026-11-23), with
+#: IV.lookup and IV.render halved because a plan of more than one segment laps them once per segment of the
+#: first two. I.acquire, IV.upload and V.stream are device waits that the simulated devices charge
+#: themselves, so they are not listed.
+REPLAY_HOST_S: dict[str, float] = {
+    "II.detect": 21.1e-6,
+    "II.threshold": 6.2e-6,
+    "III.solve": 29.8e-6,
+    "III.batch": 17.2e-6,
+    "IV.lookup": 10.0e-6,
+    "IV.render": 106.2e-6,
+    "IV.sequence": 39.4e-6,
+}
+
 _INDEX = {name: i for i, name in enumerate(STAGES)}
 _NOT_RUN = math.nan
 
@@ -50,8 +65,13 @@ class StageTimer:
     because indexing a numpy array and ``np.isnan`` on its scalars cost microseconds with cold caches.
     """
 
-    def __init__(self, now_s: Callable[[], float], max_cycles: int) -> None:
+    def __init__(
+        self, now_s: Callable[[], float], max_cycles: int, *, charge: Callable[[str], None] | None = None
+    ) -> None:
+        """``charge(stage)``, when given, runs at the end of each lapped stage before the clock is read: a
+        replaying simulated clock (``SimClock.charge``) adds the stage's modelled host time there."""
         self._now_s = now_s
+        self._charge = charge
         self._rows = [[_NOT_RUN] * len(STAGES) for _ in range(max_cycles)]
         self.cycle = 0
         self._t0 = 0.0
@@ -75,6 +95,8 @@ class StageTimer:
 
         A stage lapped several times in one cycle (e.g. the uploads of two segments) accumulates.
         """
+        if self._charge is not None:
+            self._charge(stage)
         t = self._now_s()
         self.record(stage, t - self._t0)
         self._t0 = t

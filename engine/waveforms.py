@@ -10,9 +10,15 @@ boundary. A tone moving k -> k+d (d = +-1) follows the configured transition sha
 ``alpha_k + (alpha_{k+d} - alpha_k) s(u)``, phase = the discrete running sum of the frequency plus an
 end-pinned correction ``c g(u)`` (``g`` = min-jerk: ``g(0) = 0``, ``g(1) = 1``, ``g' = g'' = 0`` at both ends;
 ``c = wrap(phi_{k+d} - theta_raw[N])``), so the phase is exactly ``phi_k`` at the start and ``phi_{k+d}``
-(mod 2 pi) at the end and the instantaneous frequency at both ends is the site frequency. Amplitude ramps
-(extract/implant) use ``s`` over the whole slot; chain fades use it over ``[0, 0.4]`` (fade-out of a site
-entered by a mover) and ``[0.6, 1]`` (fade-in of a vacated site).
+(mod 2 pi) at the end and the instantaneous frequency at both ends is the site frequency. With the default
+``continuous`` site phases (``continuous_phases``: ``phi_k = pi (M_k - M_0) (N - 1) / N``) the raw phase
+already ends on ``phi_{k+d}``, so ``c`` is zero to rounding (~1e-12 rad) and the tone's frequency, hence the
+tweezer's position, is exactly the shape: a true minimum-jerk move, monotonic, with zero velocity and
+acceleration at both slot edges. With Schroeder, zero or CSV phases ``c`` is up to pi and shifts the tone by
+up to ``pi * 15/8 / (2 pi T)`` (94 kHz at T = 10 us) mid-move, which can make it back up; those phases buy a
+low crest factor (Schroeder) at that price. Amplitude ramps (extract/implant) use ``s`` over the whole
+slot; chain fades use it over ``[0, 0.4]`` (fade-out of a site entered by a mover) and ``[0.6, 1]`` (fade-in
+of a vacated site).
 
 Trap sources
 ------------
@@ -90,6 +96,7 @@ __all__ = [
     "WaveformBank",
     "axis_tones",
     "check_headroom",
+    "continuous_phases",
     "schroeder_phases",
     "phase_track",
     "shape_curve",
@@ -153,6 +160,21 @@ class Tones(NamedTuple):
     phase_rad: np.ndarray
 
 
+def continuous_phases(cycles: np.ndarray, n_samples: int) -> np.ndarray:
+    """Site phases that make every one-site move end exactly on the next site's phase with no correction.
+
+    A tone moving k -> k + d with a symmetric shape (``s(u) + s(1 - u) = 1``) advances by
+    ``2 pi M_k + (2 pi / N) (M_{k+d} - M_k) sum_{j<N} s(j / N)`` and that sum is exactly ``(N - 1) / 2``, so the
+    move lands on ``phi_{k+d}`` iff ``phi_{k+d} - phi_k = pi (M_{k+d} - M_k) (N - 1) / N`` (mod 2 pi): phases
+    linear in the cycle count, ``phi_k = pi (M_k - M_0) (N - 1) / N``, reduced with integers so that no
+    rounding grows with ``M``. (It is a time shift of the zero-phase comb, so the comb peaks at the sum of its
+    amplitudes once per slot, which ``check_headroom`` keeps at or below full scale.)
+    """
+    m = np.asarray(cycles, dtype=np.int64)
+    half_turns = ((m - m[0]) * (n_samples - 1)) % (2 * n_samples)  # in units of pi / N
+    return np.pi * half_turns.astype(np.float64) / n_samples
+
+
 def schroeder_phases(n: int) -> np.ndarray:
     """Low-crest-factor phases for ``n`` equal tones: ``phi_k = -pi k (k - 1) / n`` (mod 2 pi)."""
     k = np.arange(n, dtype=np.float64)
@@ -200,7 +222,8 @@ def _read_tone_csv(path: str, axis: str, n: int) -> tuple[np.ndarray, np.ndarray
 def axis_tones(config: SystemConfig, axis: str) -> Tones:
     """Static tones of ``axis`` ('x' or 'y'): the configured comb, or the ``alpha,nu,phi`` CSV.
 
-    Comb: ``start_hz + k * spacing_hz`` at the configured amplitude, with Schroeder or zero phases. Raises
+    Comb: ``start_hz + k * spacing_hz`` at the configured amplitude, with continuous (``continuous_phases``),
+    Schroeder or zero phases; a CSV brings its own phases. Raises
     ``ConfigError`` (a ``ValueError``) naming the field when the tones cannot be used: an unreadable file,
     missing columns, too few rows, a frequency that is not a whole number of cycles per slot, frequencies not
     strictly ascending or at/above Nyquist, an amplitude outside (0, 1].
@@ -235,6 +258,8 @@ def axis_tones(config: SystemConfig, axis: str) -> Tones:
     if np.any(amp <= 0) or np.any(amp > 1):
         k = int(np.flatnonzero((amp <= 0) | (amp > 1))[0])
         raise ConfigError(f"{where}: tone {k} amplitude {amp[k]:g} must be in (0, 1] (a fraction of full scale)")
+    if tc.csv is None and tc.phases == "continuous":
+        phase = continuous_phases(np.round(cycles).astype(np.int64), wf.slot_samples)
     return Tones(freq, amp, np.asarray(phase, dtype=np.float64))
 
 

@@ -11,7 +11,7 @@ import sys
 from collections.abc import Sequence
 
 from engine.config import ConfigError, load_config
-from engine.records import ShotRecord
+from engine.records import ShotRecord, occupancy_to_rows
 from engine.timing import STAGES, summarize_us
 
 __all__ = ["main"]
@@ -45,6 +45,21 @@ def run_summary(records: list[ShotRecord]) -> dict:
         "outcomes": {o: sum(1 for r in records if r.outcome.value == o) for o in sorted({r.outcome.value for r in records})},
         "underruns": sum(c.underruns for r in records for c in r.cycles),
         "stages": {k: {"median_us": v["median_us"], "p99_us": v["p99_us"]} for k, v in stages.items()},
+        "per_shot": [_shot_summary(r) for r in records],
+    }
+
+
+def _shot_summary(record: ShotRecord) -> dict:
+    """One shot as ``llrs run --json`` lists it: enough to tell whether two runs played the same atoms."""
+    return {
+        "shot": record.shot_id,
+        "outcome": record.outcome.value,
+        "target_filled": record.truth.get("target_filled", False),
+        "rearrangements": sum(1 for c in record.cycles if c.n_slots > 0),
+        "slots": [c.n_slots for c in record.cycles],
+        "underruns": sum(c.underruns for c in record.cycles),
+        "occupancy": [occupancy_to_rows(c.occupancy) for c in record.cycles],  # as detected, per cycle
+        "truth": record.truth.get("occupancy_rows", []),  # the world's atoms after the shot
     }
 
 
@@ -71,6 +86,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     if args.seed is not None:
         config = config.model_copy(update={"sim": config.sim.model_copy(update={"seed": args.seed})})
+    if args.time is not None:
+        config = config.model_copy(update={"sim": config.sim.model_copy(update={"time": args.time})})
     with _build_engine_thread(config) as engine_thread:
         records = engine_thread.run_shots(args.shots).result()
     summary = run_summary(records)
@@ -88,7 +105,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     run.add_argument("--config", required=True, help="YAML configuration (see examples/)")
     run.add_argument("--shots", type=int, default=10, help="number of shots (default 10)")
     run.add_argument("--seed", type=int, default=None, help="seed of the simulated lab (overrides sim.seed)")
-    run.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    run.add_argument(
+        "--time",
+        choices=["simulated", "realtime", "replay"],
+        default=None,
+        help="simulated lab's clock (overrides sim.time); replay charges modelled host times: a seed replays exactly",
+    )
+    run.add_argument(
+        "--json", action="store_true", help="print one JSON object (summary and, per shot, outcome and occupancies)"
+    )
     run.set_defaults(func=_cmd_run)
     bench = sub.add_parser("bench", help="benchmarks that print figures (see docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)

@@ -31,3 +31,22 @@ def test_realtime_advance_waits() -> None:
     t0 = clock.now_s()
     clock.advance(0.01)
     assert clock.now_s() - t0 >= 0.01
+
+
+def test_replay_clock_moves_only_by_device_waits_and_charged_host_stages() -> None:
+    clock = SimClock("replay", {"III.solve": 30e-6})
+    t0 = clock.now_s()
+    time.sleep(0.02)
+    assert clock.now_s() == t0  # wall time does not pass in replay
+    clock.advance(1e-3)
+    assert clock.charge is not None
+    clock.charge("III.solve")
+    clock.charge("IV.upload")  # not listed: costs nothing
+    assert clock.now_s() == t0 + 1e-3 + 30e-6
+    with clock.paused():
+        clock.advance(2e-3)
+    assert clock.now_s() == t0 + 3e-3 + 30e-6
+
+
+def test_only_the_replay_clock_charges_host_stages() -> None:
+    assert SimClock("simulated").charge is None and SimClock("realtime").charge is None

@@ -19,6 +19,7 @@ from engine.config import ConfigError, load_config
 from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations
 from engine.waveforms import (
     CHAIN_KINDS,
+    INNER_UP,
     FADE_IN,
     FADE_OUT,
     FULL_SCALE,
@@ -31,6 +32,7 @@ from engine.waveforms import (
     ReferenceSynth,
     WaveformBank,
     axis_tones,
+    continuous_phases,
     phase_track,
     shape_curve,
     table_formula_bytes,
@@ -62,8 +64,12 @@ def test_axis_tones_comb_and_phases() -> None:
     t = axis_tones(cfg, "x")
     assert np.allclose(t.frequency_hz, 70e6 + 1e6 * np.arange(16))
     assert np.all(t.amplitude == 0.015)
+    cyc = np.round(t.frequency_hz * cfg.waveforms.slot_duration_s).astype(np.int64)
+    n = cfg.waveforms.slot_samples
+    assert np.allclose(wrap(t.phase_rad - np.pi * (cyc - cyc[0]) * (n - 1) / n), 0, atol=1e-9)  # continuous
     k = np.arange(16)
-    assert np.allclose(wrap(t.phase_rad + np.pi * k * (k - 1) / 16), 0, atol=1e-12)  # Schroeder
+    schroeder = axis_tones(chain_config(16, array={"x_tones": {"phases": "schroeder"}}), "x")
+    assert np.allclose(wrap(schroeder.phase_rad + np.pi * k * (k - 1) / 16), 0, atol=1e-12)
     zero = axis_tones(chain_config(16, array={"x_tones": {"phases": "zero"}}), "x")
     assert np.all(zero.phase_rad == 0)
     g = grid_config(8, 6)
@@ -123,6 +129,75 @@ def test_axis_tones_csv_errors(tmp_path: Path, rows, header: str, match: str) ->
 
 
 # --- phase pinning -------------------------------------------------------------------------------------
+
+
+def _tweezer_track(cfg, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Position (sites from k) of a tone that sits at k for a slot, moves to k + 1, sits there a slot: measured
+    from the samples (instantaneous frequency of the analytic signal), and what a pure min-jerk move gives."""
+    from scipy.signal import hilbert
+
+    b = WaveformBank(cfg)
+    n = b.slot_samples
+    if cfg.array.trap_source == "aod":  # a chain mover row is move - static: add the static tone back
+        move = b.synthesize("x", INNER_UP, k, exact=True) + b.synthesize("x", STATIC, k, exact=True)
+    else:
+        move = b.synthesize("x", MOVE_UP, k, exact=True)
+    before, after = b.synthesize("x", STATIC, k, exact=True), b.synthesize("x", STATIC, k + 1, exact=True)
+    samples = np.concatenate([before, move, after])
+    phase = np.unwrap(np.angle(hilbert(samples)))
+    t = axis_tones(cfg, "x")
+    freq = np.diff(phase) / (2 * np.pi) * cfg.waveforms.sample_rate_hz  # between samples j and j + 1
+    spacing = t.frequency_hz[k + 1] - t.frequency_hz[k]
+    j = np.arange(freq.size)
+    inner = slice(n // 4, freq.size - n // 4)  # away from the ends of the analytic signal
+    return (freq[inner] - t.frequency_hz[k]) / spacing, shape_curve("min-jerk", 0.0, (j[inner] - n) / n)
+
+
+def _acceleration(pos: np.ndarray, n: int) -> np.ndarray:
+    """Second difference (sites per slot^2) of the position averaged over n/40 samples (beats the estimator's noise)."""
+    w = n // 40
+    smooth = np.convolve(pos, np.ones(w) / w, mode="valid")
+    return (smooth[2 * w :] - 2 * smooth[w:-w] + smooth[: -2 * w]) / (w / n) ** 2
+
+
+@pytest.mark.parametrize("which", ["slm", "chain"])
+def test_continuous_phases_make_every_move_a_true_min_jerk_ramp(which: str) -> None:
+    """The tweezer position measured from the samples follows the min-jerk polynomial (to 0.2 % of a site), never
+    backs up, and its acceleration at the slot edges is the polynomial's (no step), for moves from every site."""
+    cfg = grid_config(8, 6) if which == "slm" else chain_config(16)
+    n = cfg.waveforms.slot_samples
+    for k in (0, 3, cfg.array.nx - 2):
+        pos, ideal = _tweezer_track(cfg, k)
+        assert np.abs(pos - ideal).max() < 2e-3, k
+        assert (np.maximum.accumulate(pos) - pos).max() < 2e-3, k
+        acc, acc_ideal = _acceleration(pos, n), _acceleration(ideal, n)
+        edges = np.abs(np.arange(acc.size) + n // 40 + n // 80 - 3 * n // 4) < n // 20  # around the move's start
+        edges |= np.abs(np.arange(acc.size) + n // 40 + n // 80 - 7 * n // 4) < n // 20  # ... and its end
+        assert np.abs(acc - acc_ideal)[edges].max() < 0.5, k  # min-jerk's own peak is 5.8 sites/slot^2
+
+
+def test_schroeder_phases_pay_for_their_crest_factor_with_a_corrected_ramp() -> None:
+    """The trade-off ``phases: schroeder`` makes: the end-pinned correction moves the tone off the min-jerk
+    path by up to 94 kHz (9 % of a site at 10 us) and makes it back up (the issue's original finding)."""
+    cfg = grid_config(8, 6, array={"x_tones": {"phases": "schroeder"}})
+    worst = max(np.abs(np.subtract(*_tweezer_track(cfg, k))).max() for k in range(7))
+    backs_up = max((np.maximum.accumulate(p) - p).max() for p, _ in (_tweezer_track(cfg, k) for k in range(7)))
+    assert worst > 0.03 and backs_up > 0.02
+
+
+def test_continuous_phases_need_no_correction_for_any_shape_or_slot_length() -> None:
+    """``phi_{k+1} - phi_k = pi (M_{k+1} - M_k) (N - 1) / N``: the raw phase of every move lands on the next site's
+    phase, for odd and even N and for uneven cycle steps."""
+    rng = np.random.default_rng(5)
+    for shape, sharp in (("min-jerk", 0.0), ("tanh", 6.0), ("erf", 4.0)):
+        for n in (3136, 3137, 6240):
+            cyc = np.cumsum(rng.integers(3, 40, 12)) + 700
+            phi = continuous_phases(cyc, n)
+            for k in range(11):
+                for d in (1,):
+                    u = np.arange(n) / n
+                    raw_end = phi[k] + 2 * np.pi / n * (cyc[k + d] - cyc[k]) * shape_curve(shape, sharp, u).sum()
+                    assert abs(wrap(raw_end - phi[k + d])) < 1e-9, (shape, n, k)
 
 
 @pytest.mark.parametrize("shape", SHAPES)

@@ -53,11 +53,11 @@ class SimLab:
 
 
 def build_sim_lab(config: SystemConfig) -> tuple[DeviceSet, SimLab]:
-    clock = SimClock(config.sim.time)
-    seed = np.random.SeedSequence(config.sim.seed)
-    world_seed, camera_seed = seed.spawn(2)
+    clock = SimClock(config.sim.time, config.sim.replay_host_s)
+    # one stream per device (the world splits its own per kind of event), so that no device's draws shift another's
+    world_seed, camera_seed, awg_seed = np.random.SeedSequence(config.sim.seed).spawn(3)
     world = World(config, clock=clock, rng=np.random.default_rng(world_seed))
-    awg = SimAWG(world, clock, config)
+    awg = SimAWG(world, clock, config, rng=np.random.default_rng(awg_seed))
 
     def exposure(t0_s: float, exposure_s: float) -> np.ndarray:
         awg.sync()

@@ -11,17 +11,32 @@ Two kinds of trap, following ``array.trap_source``:
 - ``aod``: a 1D chain whose traps are the x tones themselves. An atom follows its tone's track (a step when it
   moves); a tone that fades out while holding an atom loses it, and an atom where no tone starts is lost.
 
-Loss: ``survival_transfer`` per extract/implant, ``survival_step`` per one-site move, and vacuum lifetime
-``exp(-dt / tau)`` per atom over clock time (``elapse_to``). ``lossless`` turns all of it off (collisions
-and dropped atoms still lose atoms: they are mistakes, not noise). Counters record every cause.
+Loss: ``survival_transfer`` per extract/implant, ``survival_step`` per one-site move (times the speed
+model's survival for the slot's duration and shape when ``sim.moves.site_spacing_um`` is set), and vacuum loss
+with lifetime ``vacuum_lifetime_s``. ``lossless`` turns all of it off (collisions and dropped atoms still lose atoms:
+they are mistakes, not noise). Counters record every cause.
 
-Speed: a grid shot applies ~500 slots and as many vacuum steps, so each is one numba kernel call over the
+Vacuum loss as background-gas hits: every site (each static trap and each tweezer position) is hit at the
+times of its own Poisson process of rate ``1 / vacuum_lifetime_s``, and an atom is lost at the first hit on the
+site it occupies. Since at most one atom sits on a site and hits on different sites are independent, each
+atom's survival over a time ``dt`` is ``exp(-dt / tau)`` however it moves: its lifetime is exponential with
+mean ``tau``. The hit times are drawn ahead (the next one per site) and consumed in time order, so which atoms
+are lost depends only on where the atoms are when, never on how often ``elapse_to`` is called. (A death time
+drawn per atom at loading would do the same, but it would have to travel with the atom through every slot
+kernel; the hits stay with the sites, and the slot code only moves booleans.)
+
+Replay: each kind of event draws from its own random stream (loading from the ``rng`` handed in; moves and
+vacuum hits from two children spawned from it), so a change in one (say, a plan with more transfers) leaves
+the others' numbers untouched, and the same seed gives the same atoms, shot for shot, whatever the timing of
+the calls.
+
+Speed: a grid shot applies ~500 slots and as many vacuum updates, so each is one numba kernel call over the
 world's own arrays (``_tweezer_slot``, ``_chain_slot``, ``_vacuum``) instead of a dozen small numpy ops. The
 plain-numpy versions stay as the reference (``World(reference=True)``) and a test holds the two equal. Random
-draws come from ``_Uniforms``, a buffer filled from ``rng`` in order: handing a ``Generator`` to a numba
-function costs ~20 us per call (more than the slot itself), and since every draw the world makes is a uniform
-double consumed in a fixed order, reading them from a pre-drawn buffer yields exactly the values the direct
-``rng.random(n)`` calls would (same seed, same atoms lost; ``rng`` only runs ahead of what is consumed).
+draws come from ``_Uniforms``, a buffer per stream filled from its generator in order: handing a ``Generator``
+to a numba function costs ~20 us per call (more than the slot itself), and since every draw the world makes is
+a uniform double consumed in a fixed order, reading them from a pre-drawn buffer yields exactly the values the
+direct ``rng.random(n)`` calls would (the generator only runs ahead of what is consumed).
 """
 
 from __future__ import annotations
@@ -32,6 +47,7 @@ import numpy as np
 from numba import njit
 
 from drivers.sim.decode import FULL_FRACTION, DecodedSegment
+from drivers.sim.move_loss import move_survival, trap_parameters
 from engine.config import SystemConfig
 from engine.devices import Clock
 
@@ -112,8 +128,9 @@ class _Uniforms:
 class World:
     """Atoms in static traps and in mobile tweezers; seeded, so a shot replays exactly.
 
-    ``reference=True`` runs the plain-numpy slot and vacuum code instead of the numba kernels (same results,
-    same random numbers; kept to test the kernels against).
+    ``rng`` seeds every random stream of the world (loading draws from it directly, moves and vacuum hits from
+    children spawned from it). ``reference=True`` runs the plain-numpy slot and vacuum code instead of the
+    numba kernels (same results, same random numbers; kept to test the kernels against).
     """
 
     def __init__(
@@ -126,33 +143,41 @@ class World:
         reference: bool = False,
     ) -> None:
         self.clock = clock
-        self.rng = rng if rng is not None else np.random.default_rng(config.sim.seed)
+        rng = rng if rng is not None else np.random.default_rng(config.sim.seed)
+        move_rng, vacuum_rng = rng.spawn(2)
+        self._load_draws = _Uniforms(rng)
+        self._move_draws = _Uniforms(move_rng)  # transfers and steps, in the order the slots need them
+        self._vacuum_draws = _Uniforms(vacuum_rng)  # waiting times between background-gas hits
         self.counters = WorldCounters()
         self.reference = reference
         self.nx = self.ny = 0
-        self.reconfigure(config, lossless=lossless)
+        self.vacuum_lifetime_s = 0.0
+        self.lossless = True
         self._t_s = clock.now_s() if clock is not None else 0.0
+        self._first_hit_s = np.inf  # no hit process yet: ``reconfigure`` starts one
+        self.reconfigure(config, lossless=lossless)
         _warm_up()
-
-    @property
-    def rng(self) -> np.random.Generator:
-        return self._uniforms.rng
-
-    @rng.setter
-    def rng(self, rng: np.random.Generator) -> None:
-        """A new generator drops the numbers pre-drawn from the old one."""
-        self._uniforms = _Uniforms(rng)
 
     def reconfigure(self, config: SystemConfig, *, lossless: bool | None = None) -> None:
         """Adopt the array and loss model of ``config``; a new array size starts empty (between shots only)."""
+        self.elapse_to(self._now())  # hits so far follow the old loss model
         arr = config.array
         self.trap_source = arr.trap_source
         sim = config.sim
         self.loading_probability = sim.loading_probability
         self.survival_transfer = sim.survival_transfer
         self.survival_step = sim.survival_step
+        if sim.moves.site_spacing_um is not None:  # speed costs atoms: see drivers/sim/move_loss.py
+            wf = config.waveforms
+            p_transfer, p_step = move_survival(
+                wf.slot_duration_s, wf.shape, wf.shape_sharpness, sim.moves.site_spacing_um, trap_parameters(sim.moves)
+            )
+            self.survival_transfer *= p_transfer
+            self.survival_step *= p_step
+        lossless = sim.lossless if lossless is None else lossless
+        vacuum_changed = (sim.vacuum_lifetime_s, lossless) != (self.vacuum_lifetime_s, self.lossless)
         self.vacuum_lifetime_s = sim.vacuum_lifetime_s
-        self.lossless = sim.lossless if lossless is None else lossless
+        self.lossless = lossless
         self._configure_imaging(config)
         if (arr.ny, arr.nx) != (self.ny, self.nx):
             self.nx, self.ny = arr.nx, arr.ny
@@ -161,23 +186,26 @@ class World:
             self._covered = np.zeros((self.ny, self.nx), dtype=bool)  # kernel scratch
             self._flags = np.zeros((0, 6), dtype=np.bool_)  # kernel scratch, one row per tweezer
             self._chain_scratch = np.zeros((2, self.nx), dtype=np.int64)
+            vacuum_changed = True
+        if vacuum_changed:
+            self._draw_first_hits()
 
     # --- state -----------------------------------------------------------------------------------------
 
     def load(self) -> np.ndarray:
         """Empty every trap and tweezer, then fill each trap with probability ``loading_probability``."""
-        self._static[:] = self._uniforms.take(self.ny * self.nx).reshape(self.ny, self.nx) < self.loading_probability
+        self.elapse_to(self._now())  # hits up to now strike the old atoms, not the fresh ones
+        self._static[:] = self._load_draws.take(self.ny * self.nx).reshape(self.ny, self.nx) < self.loading_probability
         self._held[:] = False
         self.counters.loaded += int(self._static.sum())
-        self._t_s = self._now()
         return self.occupancy()
 
     def set_occupancy(self, occupancy: np.ndarray) -> None:
         """Place atoms by hand (tests, scripted scenarios); empties the tweezers."""
         occ = np.asarray(occupancy, dtype=bool).reshape(self.ny, self.nx)
+        self.elapse_to(self._now())
         self._static[:] = occ
         self._held[:] = False
-        self._t_s = self._now()
 
     def occupancy(self) -> np.ndarray:
         """Static-trap ground truth now (what a camera would image): read-only ``bool[ny, nx]``."""
@@ -202,37 +230,57 @@ class World:
     def _now(self) -> float:
         return self.clock.now_s() if self.clock is not None else self._t_s
 
+    def _draw_first_hits(self) -> None:
+        """Start every site's background-gas process afresh at the world's time (memoryless, so no bias).
+
+        ``_next_hit_s[0]`` are the static traps, ``[1]`` the tweezer sites; infinite when lossless.
+        """
+        self._next_hit_s = np.full((2, self.ny, self.nx), np.inf)
+        if not self.lossless:
+            waits = self._vacuum_draws.take(self._next_hit_s.size).reshape(self._next_hit_s.shape)
+            self._next_hit_s[:] = self._t_s - self.vacuum_lifetime_s * np.log1p(-waits)
+        self._first_hit_s = float(self._next_hit_s.min())
+
     def elapse_to(self, t_s: float) -> None:
-        """Apply vacuum loss for the time since the world was last brought up to date (never backwards)."""
-        dt = t_s - self._t_s
-        if dt <= 0:
+        """Apply the vacuum hits since the world was last brought up to date (never backwards).
+
+        Call it before atoms move: a hit strikes whatever sits on its site when the world learns of it.
+        """
+        if t_s <= self._t_s:
             return
         self._t_s = t_s
-        if self.lossless:
+        if t_s < self._first_hit_s:  # nearly every call: no site is hit before t_s
             return
-        p_keep = float(np.exp(-dt / self.vacuum_lifetime_s))
         if self.reference:
-            self._vacuum_reference(p_keep)
+            self._vacuum_reference(t_s)
             return
-        u = self._uniforms
-        need = self._static.size + self._held.size
-        if u.buf.size - u.pos < need:
-            u.ensure(need)
-        u.pos, lost = _vacuum(self._static, self._held, u.buf, u.pos, p_keep)
-        self.counters.lost_vacuum += lost
+        u = self._vacuum_draws
+        done = False
+        while not done:
+            u.ensure(64)
+            u.pos, lost, done = _vacuum(
+                self._static, self._held, self._next_hit_s, t_s, u.buf, u.pos, self.vacuum_lifetime_s
+            )
+            self.counters.lost_vacuum += lost
+        self._first_hit_s = float(self._next_hit_s.min())
 
-    def _vacuum_reference(self, p_keep: float) -> None:
-        for grid in (self._static, self._held):
-            idx = np.flatnonzero(grid)
-            if idx.size:
-                gone = idx[self._uniforms.take(idx.size) >= p_keep]
-                grid.flat[gone] = False
-                self.counters.lost_vacuum += int(gone.size)
+    def _vacuum_reference(self, t_s: float) -> None:
+        hits = self._next_hit_s.reshape(2, -1)
+        grids = (self._static.reshape(-1), self._held.reshape(-1))
+        while True:
+            kind, site = np.unravel_index(np.argmin(hits), hits.shape)
+            if hits[kind, site] > t_s:
+                break
+            if grids[kind][site]:
+                grids[kind][site] = False
+                self.counters.lost_vacuum += 1
+            hits[kind, site] -= self.vacuum_lifetime_s * np.log1p(-self._vacuum_draws.take(1)[0])
+        self._first_hit_s = float(hits.min())
 
     def _survive(self, n: int, p: float) -> np.ndarray:
         if self.lossless or p >= 1.0:
             return np.ones(n, dtype=bool)
-        return self._uniforms.take(n) < p
+        return self._move_draws.take(n) < p
 
     # --- slots -----------------------------------------------------------------------------------------
 
@@ -258,7 +306,7 @@ class World:
             return
         tracks = np.ascontiguousarray(tracks, dtype=np.float32)
         draw = not self.lossless and self.survival_step < 1.0
-        u = self._uniforms
+        u = self._move_draws
         if draw and u.buf.size - u.pos < self.nx:
             u.ensure(self.nx)
         pos, steps, lost_step, lost_collision, lost_dropped, lost_released = _chain_slot(
@@ -312,7 +360,7 @@ class World:
             self._flags = np.zeros((max(n_tweezers, 4 * self.nx * self.ny), 6), dtype=np.bool_)
         draw_transfer = not self.lossless and self.survival_transfer < 1.0
         draw_step = not self.lossless and self.survival_step < 1.0
-        u = self._uniforms
+        u = self._move_draws
         need = 3 * n_tweezers  # at most one extraction, one step and one implant per tweezer
         if (draw_transfer or draw_step) and u.buf.size - u.pos < need:
             u.ensure(need)
@@ -452,18 +500,28 @@ _IMAGING_STREAM = int.from_bytes(b"imaging", "big")  # spawn key of the imaging 
 
 
 @njit(cache=True, nogil=True)
-def _vacuum(static: np.ndarray, held: np.ndarray, u: np.ndarray, pos: int, p_keep: float) -> tuple[int, int]:
-    """Vacuum loss: one uniform per atom, static traps first then tweezers, row-major. Returns (pos, lost)."""
+def _vacuum(
+    static: np.ndarray, held: np.ndarray, next_hit_s: np.ndarray, t_s: float, u: np.ndarray, pos: int, lifetime_s: float
+) -> tuple[int, int, bool]:
+    """Background-gas hits up to ``t_s``, earliest first; each hit empties its site and draws the site's next
+    hit (an exponential wait from ``u``). Returns ``(pos, lost, done)``; ``done`` is False when ``u`` ran out."""
+    n = static.size
+    hits = next_hit_s.reshape(2 * n)
+    static_flat = static.reshape(n)
+    held_flat = held.reshape(n)
     lost = 0
-    for grid in (static, held):
-        flat = grid.reshape(grid.size)
-        for i in range(flat.size):
-            if flat[i]:
-                if u[pos] >= p_keep:
-                    flat[i] = False
-                    lost += 1
-                pos += 1
-    return pos, lost
+    while pos < u.size:
+        k = np.argmin(hits)
+        if hits[k] > t_s:
+            return pos, lost, True
+        grid = static_flat if k < n else held_flat
+        site = k % n
+        if grid[site]:
+            grid[site] = False
+            lost += 1
+        hits[k] -= lifetime_s * np.log1p(-u[pos])
+        pos += 1
+    return pos, lost, False
 
 
 @njit(cache=True, nogil=True)
@@ -643,7 +701,7 @@ def _warm_up() -> None:
     grid = np.zeros((1, 1), dtype=bool)
     u = np.zeros(4)
     one = np.array([[0, 0, 1, 1]], dtype=np.float32)
-    _vacuum(grid, grid.copy(), u, 0, 1.0)
+    _vacuum(grid, grid.copy(), np.full((2, 1, 1), np.inf), 0.0, u, 0, 1.0)
     _tweezer_slot(one, one, grid, grid.copy(), grid.copy(), np.zeros((1, 6), np.bool_), u, 0, False, 1.0, False, 1.0)
     _chain_slot(one, np.zeros(1, dtype=bool), np.zeros((2, 1), np.int64), u, 0, False, 1.0)
     _warm_up.done = True  # type: ignore[attr-defined]

@@ -143,11 +143,7 @@ class World:
         reference: bool = False,
     ) -> None:
         self.clock = clock
-        rng = rng if rng is not None else np.random.default_rng(config.sim.seed)
-        move_rng, vacuum_rng = rng.spawn(2)
-        self._load_draws = _Uniforms(rng)
-        self._move_draws = _Uniforms(move_rng)  # transfers and steps, in the order the slots need them
-        self._vacuum_draws = _Uniforms(vacuum_rng)  # waiting times between background-gas hits
+        self.reseed(rng if rng is not None else np.random.default_rng(config.sim.seed))
         self.counters = WorldCounters()
         self.reference = reference
         self.nx = self.ny = 0
@@ -157,6 +153,17 @@ class World:
         self._first_hit_s = np.inf  # no hit process yet: ``reconfigure`` starts one
         self.reconfigure(config, lossless=lossless)
         _warm_up()
+
+    def reseed(self, rng: np.random.Generator) -> None:
+        """Start every random stream afresh from ``rng``: loading draws from it, and moves, vacuum hits and
+        imaging from children spawned from it, so each kind of event has a stream of its own."""
+        move_rng, vacuum_rng, imaging_rng = rng.spawn(3)
+        self._load_draws = _Uniforms(rng)
+        self._move_draws = _Uniforms(move_rng)  # transfers and steps, in the order the slots need them
+        self._vacuum_draws = _Uniforms(vacuum_rng)  # waiting times between background-gas hits
+        self._imaging_rng = imaging_rng  # which imaged atoms are heated out, and when
+        if getattr(self, "nx", 0):  # already configured: the hits drawn ahead came from the old stream
+            self._draw_first_hits()
 
     def reconfigure(self, config: SystemConfig, *, lossless: bool | None = None) -> None:
         """Adopt the array and loss model of ``config``; a new array size starts empty (between shots only)."""
@@ -447,17 +454,8 @@ class World:
     # --- imaging ---------------------------------------------------------------------------------------
 
     def _configure_imaging(self, config: SystemConfig) -> None:
-        """Adopt ``sim.imaging``'s loss rate; a new seed starts the imaging stream afresh.
-
-        Imaging draws from a generator of its own (a child of ``sim.seed`` by a fixed spawn key), so how many
-        numbers the slots and the vacuum consume never changes which atoms an image loses.
-        """
+        """Adopt ``sim.imaging``'s loss rate (the imaging stream is the world's own, see ``reseed``)."""
         self.imaging_loss_rate_hz = config.sim.imaging.loss_rate_hz
-        if not hasattr(self, "_imaging_rng") or self._imaging_seed != config.sim.seed:
-            self._imaging_seed = config.sim.seed
-            self._imaging_rng = np.random.default_rng(
-                np.random.SeedSequence(config.sim.seed, spawn_key=(_IMAGING_STREAM,))
-            )
 
     def expose(self, t0_s: float, exposure_s: float) -> np.ndarray:
         """Image the static traps from ``t0_s`` for ``exposure_s``: returns ``float64[ny, nx]``, the fraction of
@@ -490,7 +488,6 @@ class World:
 
 
 _NO_TRACKS = np.zeros((0, 4), dtype=np.float32)
-_IMAGING_STREAM = int.from_bytes(b"imaging", "big")  # spawn key of the imaging loss stream under sim.seed
 
 
 # --- kernels ---------------------------------------------------------------------------------------------

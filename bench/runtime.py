@@ -26,7 +26,9 @@ from typing import Any
 
 import numpy as np
 
+from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig, load_config
+from engine.engine import Engine
 from engine.records import ShotRecord
 from engine.timing import PAPER_TABLE1_MS, STAGES
 from server.serve import engine_cpu_arg
@@ -121,9 +123,6 @@ def problem_config(problem: str, *, seed: int | None = None) -> SystemConfig:
 def run_problem(config: SystemConfig, shots: int, *, cpu: int | None = None) -> list[ShotRecord]:
     """Run ``shots`` shots of ``config`` on the simulated lab, in this thread (the engine's own loop), pinned
     to core ``cpu`` while it runs (as ``llrs serve`` pins its engine process; ``None``: not pinned)."""
-    from drivers.sim.lab import build_sim_lab
-    from engine.engine import Engine
-
     devices, lab = build_sim_lab(config)
     engine = Engine(config, devices, lab=lab)
     allowed = os.sched_getaffinity(0) if cpu is not None else None
@@ -160,7 +159,7 @@ def _print(figures: dict[str, dict[str, Any]]) -> None:
 def plot_stacked(figures: dict[str, dict[str, Any]], path: str | Path) -> None:
     """Stacked bars per problem of the mean stage times, ours next to the paper's: the whole cycle (ms), and
     the host's stages II-IV without the camera and the card (us), where the differences are."""
-    import matplotlib
+    import matplotlib  # deferred on purpose: an optional (dev) dependency, and slow to import
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

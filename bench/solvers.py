@@ -36,7 +36,13 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-__all__ = ["LOSS_MODELS", "PLANNERS", "PROBLEMS", "Problem", "bench_solvers", "plot_scaling", "register"]
+from engine.operations import Plan
+from engine.solvers import Solver, UnsolvableError
+from engine.solvers.validate import InvalidPlan, validate
+from engine.targets import centre_target
+
+__all__ = ["LOSS_MODELS", "PLANNERS", "PROBLEMS", "Problem", "bench_solvers", "plot_scaling", "register", "replay_counts",
+           "solvable_fillings"]
 
 
 @dataclass(frozen=True)
@@ -52,8 +58,6 @@ class Problem:
         return "aod" if self.ny == 1 else "slm"
 
     def target(self) -> np.ndarray:
-        from engine.targets import centre_target
-
         return centre_target(nx=self.nx, ny=self.ny, count=self.nx * self.ny // 2)
 
 
@@ -97,14 +101,15 @@ def _applies(label: str, problem: Problem) -> bool:
     return True
 
 
-def _instances(problem: Problem, n: int) -> tuple[list[np.ndarray], int]:
-    """The first ``n`` solvable fillings (seeds 0, 1, ...) and how many seeds were unsolvable on the way."""
-    need = int(problem.target().sum())
+def solvable_fillings(ny: int, nx: int, n: int, *, loading: float, need: int) -> tuple[list[np.ndarray], int]:
+    """The first ``n`` fillings ``default_rng(seed).random((ny, nx)) < loading`` (seeds 0, 1, ...) holding at
+    least ``need`` atoms, and how many seeds had too few on the way. Every benchmark that compares planners
+    draws its instances here, so their figures are over the same fillings."""
     out: list[np.ndarray] = []
     seed = 0
     unsolvable = 0
     while len(out) < n:
-        occ = np.random.default_rng(seed).random((problem.ny, problem.nx)) < problem.loading
+        occ = np.random.default_rng(seed).random((ny, nx)) < loading
         seed += 1
         if occ.sum() >= need:
             out.append(occ)
@@ -113,13 +118,12 @@ def _instances(problem: Problem, n: int) -> tuple[list[np.ndarray], int]:
     return out, unsolvable
 
 
-def replay_counts(plan: Any, occupancy: np.ndarray, trap_source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def replay_counts(plan: Plan, occupancy: np.ndarray, trap_source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per atom (numbered in row-major order of ``occupancy``): its final trap (flat index), transfers
-    (extract + implant) and one-site steps. Chains use the validator's replay; crossed-AOD plans (already
-    validated) a compiled replay of the same rules that only counts (the validator's numpy replay takes
-    ~0.5 s for a 10 000-slot plan, too slow inside a Monte Carlo)."""
-    from engine.solvers.validate import _replay_chain
-
+    (extract + implant) and one-site steps. Chains follow the plan's one-site steps (one atom, one site each,
+    in execution order; ``validate`` proves they agree with the slots); crossed-AOD plans (already
+    validated) a compiled replay of the slots that only counts pick-ups too (the validator's numpy replay
+    takes ~0.5 s for a 10 000-slot plan, too slow inside a Monte Carlo)."""
     ny, nx = occupancy.shape
     ident = np.full((ny, nx), -1, dtype=np.int64)
     n_atoms = int(occupancy.sum())
@@ -127,7 +131,11 @@ def replay_counts(plan: Any, occupancy: np.ndarray, trap_source: str) -> tuple[n
     steps = np.zeros(n_atoms, dtype=np.int64)
     pickups = np.zeros(n_atoms, dtype=np.int64)
     if trap_source == "aod":
-        _replay_chain(plan.operations, ident, steps)
+        trap_atom = ident.ravel()  # a view: following a step moves the atom's id in ``ident``
+        for src, dst in plan.steps.tolist():
+            trap_atom[dst] = trap_atom[src]
+            trap_atom[src] = -1
+            steps[trap_atom[dst]] += 1
         transfers = 2 * (steps > 0)
     else:
         ops = plan.operations
@@ -192,8 +200,6 @@ def _loss_trial(
     rng: np.random.Generator,
 ) -> tuple[bool, int]:
     """One shot under loss: (filled within MAX_CYCLES cycles, rearranging cycles used)."""
-    from engine.solvers import UnsolvableError
-
     occ = occ.copy()
     for cycle in range(MAX_CYCLES):
         if np.all(occ[target]):
@@ -220,9 +226,6 @@ def bench_one(
     slot_s: float = 10e-6, seed: int = 0,
 ) -> dict[str, Any]:
     """All figures for one planner on one problem (``occs``: solvable instances)."""
-    from engine.solvers import Solver
-    from engine.solvers.validate import InvalidPlan, validate
-
     algorithm, objective = PLANNERS[label]
     target = problem.target()
     t0 = time.perf_counter()
@@ -323,7 +326,8 @@ def bench_solvers(
     seeds_unsolvable = {}
     for problem in chosen:
         n = instances if problem.group != "scaling" or scaling_instances is None else scaling_instances
-        occs, unsolvable = _instances(problem, n)
+        occs, unsolvable = solvable_fillings(problem.ny, problem.nx, n, loading=problem.loading,
+                                             need=int(problem.target().sum()))
         seeds_unsolvable[problem.name] = unsolvable
         for label in labels:
             if not _applies(label, problem):
@@ -370,7 +374,7 @@ def format_row(r: dict[str, Any]) -> str:
 
 def plot_scaling(data: dict[str, Any], out_dir: Path) -> list[Path]:
     """Slots and planning time against array size (traps) per planner: two PNGs (needs matplotlib)."""
-    import matplotlib
+    import matplotlib  # deferred on purpose: an optional (dev) dependency, and slow to import
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

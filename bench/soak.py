@@ -21,7 +21,10 @@ import h5py
 
 from engine.config import load_config
 from engine.records import ShotRecord
-from server.bench_runtime import REPO
+from bench.runtime import REPO
+from server.runstore import RunStore
+from server.serve import engine_host_factory
+from server.service import LabService
 
 __all__ = ["register", "rss_mb", "run_soak"]
 
@@ -45,10 +48,6 @@ def shots_on_disk(runs_dir: Path) -> int:
 def run_soak(
     config_path: str, shots: int, *, warmup: int, sample_every: int, progress: bool, in_process: bool = True
 ) -> dict[str, Any]:
-    from server.runstore import RunStore
-    from server.serve import engine_host_factory
-    from server.service import LabService
-
     config = load_config(config_path)
     config = config.model_copy(update={"sim": config.sim.model_copy(update={"time": "simulated"})})
 

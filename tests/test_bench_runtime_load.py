@@ -54,6 +54,7 @@ def test_runtime_cli_prints_one_json_object_per_problem() -> None:
     assert set(figures["1x64"]["software_latency_us"]) == {"mean", "median", "p99", "max"}
 
 
+@pytest.mark.bench
 def test_load_bench_loads_the_server_and_reports_both_phases() -> None:
     result = run_load_bench(str(REPO / "examples/chain-1x64.yaml"), seconds=1.5, rate_hz=40, n_ws=3, cpu=None)
     assert result["engine"] == "process"
@@ -66,6 +67,7 @@ def test_load_bench_loads_the_server_and_reports_both_phases() -> None:
     assert np.isfinite(result["p99_growth"])
 
 
+@pytest.mark.bench
 def test_soak_records_every_shot_and_samples_both_processes() -> None:
     result = run_soak(str(REPO / "examples/chain-1x64.yaml"), 40, warmup=10, sample_every=10, progress=False)
     assert result["engine"] == "process"

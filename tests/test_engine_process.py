@@ -5,34 +5,28 @@ from __future__ import annotations
 
 import os
 import signal
-import time
+from collections.abc import Callable
 from functools import partial
 from operator import methodcaller
-from pathlib import Path
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
 
 from engine.config import SystemConfig, load_config
 from engine.devices import DeviceError
 from engine.process import EngineProcess, EngineProcessDied, default_engine_cpu, shot_with_frame
 from engine.records import Outcome
-from server.app import create_app
-from server.serve import build_engine, engine_host_factory
-from server.service import LabService
+from server.serve import build_engine
 
-CHAIN = Path(__file__).resolve().parents[1] / "examples" / "chain-1x64.yaml"
+from conftest import EXAMPLES, lossless
 
-
-def chain_config(**sim: object) -> SystemConfig:
-    config = load_config(CHAIN)
-    return config.model_copy(update={"sim": config.sim.model_copy(update={"lossless": True, **sim})})
+#: the lossless 1x64 chain (``conftest.lossless_chain``; a module-scoped fixture below needs it too)
+CHAIN = lossless(load_config(EXAMPLES / "chain-1x64.yaml"))
 
 
 @pytest.fixture(scope="module")
 def engine_process():
-    with EngineProcess(partial(build_engine, chain_config())) as host:
+    with EngineProcess(partial(build_engine, CHAIN)) as host:
         yield host
 
 
@@ -59,7 +53,7 @@ def test_errors_cross_the_boundary_with_their_type(engine_process: EngineProcess
 
 
 def test_a_build_that_fails_raises_its_own_error_in_start() -> None:
-    data = chain_config().model_dump()
+    data = CHAIN.model_dump()
     data["devices"]["awg"] = "spectrum"  # no Spectrum driver here
     host = EngineProcess(partial(build_engine, SystemConfig.model_validate(data)))
     with pytest.raises(DeviceError):
@@ -71,7 +65,7 @@ def test_a_build_that_fails_raises_its_own_error_in_start() -> None:
 def test_pinning_keeps_the_server_off_the_engine_core() -> None:
     cpu = default_engine_cpu()
     before = os.sched_getaffinity(0)
-    host = EngineProcess(partial(build_engine, chain_config()), cpu=cpu).start(timeout_s=120)
+    host = EngineProcess(partial(build_engine, CHAIN), cpu=cpu).start(timeout_s=120)
     try:
         assert os.sched_getaffinity(host.pid) == {cpu}
         assert cpu not in os.sched_getaffinity(0)
@@ -80,37 +74,30 @@ def test_pinning_keeps_the_server_off_the_engine_core() -> None:
     assert os.sched_getaffinity(0) == before
 
 
-def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers() -> None:
-    config = chain_config()
-    factory = engine_host_factory(in_process=True, cpu=None)
-    service = LabService(engine_thread=factory(config), engine_factory=factory, config=config, pause_s=0.0)
-    service.start()
-    try:
-        with TestClient(create_app(service=service)) as client:
-            assert client.post("/api/shots").status_code == 200
-            old = service._et
-            os.kill(old.pid, signal.SIGKILL)
-            deadline = time.monotonic() + 10
-            while old.alive and time.monotonic() < deadline:
-                time.sleep(0.05)
-            with pytest.raises(EngineProcessDied, match="signal 9"):
-                old.submit(shot_with_frame).result(timeout=10)
-            r = client.post("/api/shots")
-            assert r.status_code == 503 and "signal 9" in r.json()["detail"]
-            status = client.get("/api/status").json()
-            assert status["state"] == "fault" and "PUT /api/config" in status["reason"]
-            assert client.get("/api/shots").json()["total"] >= 1  # the history survived
-            # applying a configuration starts a new engine process
-            assert client.put("/api/config", json=config.model_dump(mode="json")).status_code == 200
-            assert client.get("/api/status").json()["state"] != "fault"
-            assert client.post("/api/shots").status_code == 200
-            assert service._et is not old and service._et.alive
-    finally:
-        service.close()
+def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers(
+    lab_server: Callable, wait_until: Callable
+) -> None:
+    with lab_server(CHAIN) as (service, client):
+        assert client.post("/api/shots").status_code == 200
+        old = service._et
+        os.kill(old.pid, signal.SIGKILL)
+        wait_until(lambda: not old.alive, what="the killed engine process to be seen dead")
+        with pytest.raises(EngineProcessDied, match="signal 9"):
+            old.submit(shot_with_frame).result(timeout=10)
+        r = client.post("/api/shots")
+        assert r.status_code == 503 and "signal 9" in r.json()["detail"]
+        status = client.get("/api/status").json()
+        assert status["state"] == "fault" and "PUT /api/config" in status["reason"]
+        assert client.get("/api/shots").json()["total"] >= 1  # the history survived
+        # applying a configuration starts a new engine process
+        assert client.put("/api/config", json=CHAIN.model_dump(mode="json")).status_code == 200
+        assert client.get("/api/status").json()["state"] != "fault"
+        assert client.post("/api/shots").status_code == 200
+        assert service._et is not old and service._et.alive
 
 
 def test_an_injected_fault_crosses_the_boundary_and_clears(engine_process: EngineProcess) -> None:
-    config = chain_config()
+    config = CHAIN
     data = config.model_dump()
     data["sim"]["faults"]["camera"] = "timeout"
     broken = SystemConfig.model_validate(data)

@@ -8,16 +8,18 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
-from fastapi.testclient import TestClient
 
 from engine.config import SystemConfig, load_config
-from server.app import create_app
-from server.serve import engine_host_factory
-from server.service import LabService
+
+if TYPE_CHECKING:
+    from fastapi.testclient import TestClient
+
+    from server.service import LabService
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -28,18 +30,25 @@ def lossless(config: SystemConfig, **sim: object) -> SystemConfig:
     return config.model_copy(update={"sim": config.sim.model_copy(update={"lossless": True, **sim})})
 
 
-@pytest.fixture
-def lossless_chain() -> Callable[..., SystemConfig]:
-    """``lossless_chain(**sim)``: the paper's 1x64 -> 32 chain (``examples/chain-1x64.yaml``), lossless."""
-    base = load_config(EXAMPLES / "chain-1x64.yaml")
-    return lambda **sim: lossless(base, **sim)
+@pytest.fixture(scope="session")
+def lossless_chain() -> SystemConfig:
+    """The paper's 1x64 -> 32 chain (``examples/chain-1x64.yaml``), lossless; ``lossless(lossless_chain,
+    seed=...)`` for other simulator settings. Session-scoped, so module-scoped fixtures can build on it."""
+    return lossless(load_config(EXAMPLES / "chain-1x64.yaml"))
 
 
 @pytest.fixture
-def lab_server() -> Callable[[SystemConfig], contextmanager]:
+def lab_server() -> Callable[[SystemConfig], AbstractContextManager[tuple[LabService, TestClient]]]:
     """``with lab_server(config) as (service, client):`` the lab service on the simulated lab, the engine in
     a process of its own as ``llrs serve`` runs it, behind the FastAPI app, reached through ``TestClient``
     (HTTP without a socket). Closed, engine process included, when the block ends."""
+
+    # deferred on purpose: the web stack (about a second to import) loads only for the tests that serve
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+    from server.serve import engine_host_factory
+    from server.service import LabService
 
     @contextmanager
     def serve(config: SystemConfig) -> Iterator[tuple[LabService, TestClient]]:

@@ -13,20 +13,20 @@ import numpy as np
 import pytest
 
 from drivers.sim.lab import build_sim_lab
-from engine.config import load_config
+from engine.config import SystemConfig
 from engine.engine import Engine, EngineThread
 from engine.records import Outcome
 from engine.solvers import PlannerError
 from engine.timing import STAGES
 from server.cli import main as cli_main
 
-from conftest import EXAMPLES, lossless
+from conftest import lossless
 from sim_signals import chain_config
 
 
 @pytest.fixture(scope="module")
-def chain_engine() -> tuple[Engine, object]:
-    config = lossless(load_config(EXAMPLES / "chain-1x64.yaml"), seed=11)
+def chain_engine(lossless_chain: SystemConfig) -> tuple[Engine, object]:
+    config = lossless(lossless_chain, seed=11)
     devices, lab = build_sim_lab(config)
     return Engine(config, devices, lab=lab), lab
 

@@ -12,21 +12,16 @@ from operator import methodcaller
 import numpy as np
 import pytest
 
-from engine.config import SystemConfig, load_config
+from engine.config import SystemConfig
 from engine.devices import DeviceError
 from engine.process import EngineProcess, EngineProcessDied, default_engine_cpu, shot_with_frame
 from engine.records import Outcome
 from server.serve import build_engine
 
-from conftest import EXAMPLES, lossless
-
-#: the lossless 1x64 chain (``conftest.lossless_chain``; a module-scoped fixture below needs it too)
-CHAIN = lossless(load_config(EXAMPLES / "chain-1x64.yaml"))
-
 
 @pytest.fixture(scope="module")
-def engine_process():
-    with EngineProcess(partial(build_engine, CHAIN)) as host:
+def engine_process(lossless_chain: SystemConfig):
+    with EngineProcess(partial(build_engine, lossless_chain)) as host:
         yield host
 
 
@@ -52,8 +47,8 @@ def test_errors_cross_the_boundary_with_their_type(engine_process: EngineProcess
     assert frames.shape == (2, 16, 1024)  # the engine is still there after both errors
 
 
-def test_a_build_that_fails_raises_its_own_error_in_start() -> None:
-    data = CHAIN.model_dump()
+def test_a_build_that_fails_raises_its_own_error_in_start(lossless_chain: SystemConfig) -> None:
+    data = lossless_chain.model_dump()
     data["devices"]["awg"] = "spectrum"  # no Spectrum driver here
     host = EngineProcess(partial(build_engine, SystemConfig.model_validate(data)))
     with pytest.raises(DeviceError):
@@ -62,10 +57,10 @@ def test_a_build_that_fails_raises_its_own_error_in_start() -> None:
 
 
 @pytest.mark.skipif(default_engine_cpu() is None, reason="needs two cores to pin the engine")
-def test_pinning_keeps_the_server_off_the_engine_core() -> None:
+def test_pinning_keeps_the_server_off_the_engine_core(lossless_chain: SystemConfig) -> None:
     cpu = default_engine_cpu()
     before = os.sched_getaffinity(0)
-    host = EngineProcess(partial(build_engine, CHAIN), cpu=cpu).start(timeout_s=120)
+    host = EngineProcess(partial(build_engine, lossless_chain), cpu=cpu).start(timeout_s=120)
     try:
         assert os.sched_getaffinity(host.pid) == {cpu}
         assert cpu not in os.sched_getaffinity(0)
@@ -75,9 +70,9 @@ def test_pinning_keeps_the_server_off_the_engine_core() -> None:
 
 
 def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers(
-    lab_server: Callable, wait_until: Callable
+    lossless_chain: SystemConfig, lab_server: Callable, wait_until: Callable
 ) -> None:
-    with lab_server(CHAIN) as (service, client):
+    with lab_server(lossless_chain) as (service, client):
         assert client.post("/api/shots").status_code == 200
         old = service._et
         os.kill(old.pid, signal.SIGKILL)
@@ -90,14 +85,16 @@ def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers(
         assert status["state"] == "fault" and "PUT /api/config" in status["reason"]
         assert client.get("/api/shots").json()["total"] >= 1  # the history survived
         # applying a configuration starts a new engine process
-        assert client.put("/api/config", json=CHAIN.model_dump(mode="json")).status_code == 200
+        assert client.put("/api/config", json=lossless_chain.model_dump(mode="json")).status_code == 200
         assert client.get("/api/status").json()["state"] != "fault"
         assert client.post("/api/shots").status_code == 200
         assert service._et is not old and service._et.alive
 
 
-def test_an_injected_fault_crosses_the_boundary_and_clears(engine_process: EngineProcess) -> None:
-    config = CHAIN
+def test_an_injected_fault_crosses_the_boundary_and_clears(
+    engine_process: EngineProcess, lossless_chain: SystemConfig
+) -> None:
+    config = lossless_chain
     data = config.model_dump()
     data["sim"]["faults"]["camera"] = "timeout"
     broken = SystemConfig.model_validate(data)

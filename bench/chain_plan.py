@@ -72,6 +72,8 @@ def _cmd(args: argparse.Namespace) -> int:
 
 
 def register(bench_sub: argparse._SubParsersAction) -> None:
-    p = bench_sub.add_parser("chain-plan", help="modules III and IV for the 1x64 chain out of the loop: plan, lookup, render")
+    p = bench_sub.add_parser(
+        "chain-plan", help="modules III and IV for the 1x64 chain out of the loop: plan, lookup, render"
+    )
     p.add_argument("--instances", type=int, default=2000, help="random fillings drawn at loading 0.6 (default 2000)")
     p.set_defaults(func=_cmd)

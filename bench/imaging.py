@@ -14,10 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.sim.camera import SimCamera
-from drivers.sim.clock import SimClock
 from engine.config import SystemConfig
-from engine.imaging import Detector, threshold_reference, weighted_sums_reference
 
 __all__ = ["register"]
 
@@ -44,6 +41,12 @@ def _time_us(call: Callable[[], object], repeats: int) -> tuple[float, float]:
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    # deferred on purpose: ``llrs`` imports every benchmark to list it; the imaging stack (scipy: about 1.5 s to import)
+    # loads only when this benchmark runs
+    from drivers.sim.camera import SimCamera
+    from drivers.sim.clock import SimClock
+    from engine.imaging import Detector, threshold_reference, weighted_sums_reference
+
     rng = np.random.default_rng(7)
     print(f"{'configuration':36s} {'implementation':16s} {'median us':>10s} {'p99 us':>10s}")
     for name, config in _configs().items():
@@ -68,6 +71,8 @@ def _cmd(args: argparse.Namespace) -> int:
 
 
 def register(bench_sub: argparse._SubParsersAction) -> None:
-    p = bench_sub.add_parser("imaging", help="module II: numba detect against the plain-numpy reference, 64 and 2048 traps")
+    p = bench_sub.add_parser(
+        "imaging", help="module II: numba detect against the plain-numpy reference, 64 and 2048 traps"
+    )
     p.add_argument("--repeats", type=int, default=5000, help="timed calls per configuration (default 5000)")
     p.set_defaults(func=_cmd)

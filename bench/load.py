@@ -26,12 +26,11 @@ from typing import Any
 
 import numpy as np
 
+from bench.runtime import REPO, SOFTWARE_STAGES_WITH_RENDER, software_latencies_us
 from engine.config import load_config
 from engine.records import ShotRecord
-from bench.runtime import REPO, SOFTWARE_STAGES_WITH_RENDER, software_latencies_us
 from server.runstore import RunStore
 from server.serve import engine_cpu_arg, engine_host_factory
-from server.service import LabService
 
 __all__ = ["register", "run_load_bench", "run_load_clients"]
 
@@ -136,11 +135,12 @@ def run_load_clients(base: str, seconds: float, rate_hz: float, n_ws: int) -> di
 
 
 def _serve(config_path: str, runs_dir: str, *, in_process: bool, cpu: int | None):  # noqa: ANN202 - (service, server, thread, url)
-    # deferred on purpose: ``llrs`` imports every benchmark to list it, and the web stack (fastapi, uvicorn:
-    # about a second) should load only when this benchmark runs
+    # deferred on purpose: ``llrs`` imports every benchmark to list it, and the web stack (fastapi, uvicorn,
+    # the lab service: about 2 s to import) should load only when this benchmark runs
     import uvicorn
 
     from server.app import create_app
+    from server.service import LabService
 
     config = load_config(config_path)
     host = engine_host_factory(in_process=in_process, cpu=cpu)

@@ -26,9 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig, load_config
-from engine.engine import Engine
 from engine.records import ShotRecord
 from engine.timing import PAPER_TABLE1_MS, STAGES
 from server.serve import engine_cpu_arg
@@ -123,6 +121,11 @@ def problem_config(problem: str, *, seed: int | None = None) -> SystemConfig:
 def run_problem(config: SystemConfig, shots: int, *, cpu: int | None = None) -> list[ShotRecord]:
     """Run ``shots`` shots of ``config`` on the simulated lab, in this thread (the engine's own loop), pinned
     to core ``cpu`` while it runs (as ``llrs serve`` pins its engine process; ``None``: not pinned)."""
+    # deferred on purpose: ``llrs`` imports every benchmark to list it; the engine and the simulated lab
+    # (about 1.5 s to import) load only when this benchmark runs
+    from drivers.sim.lab import build_sim_lab
+    from engine.engine import Engine
+
     devices, lab = build_sim_lab(config)
     engine = Engine(config, devices, lab=lab)
     allowed = os.sched_getaffinity(0) if cpu is not None else None

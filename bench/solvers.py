@@ -13,11 +13,13 @@ each planner and problem it reports
   target (``invalid`` counts plans it rejects: the goal is zero);
 - a loss Monte Carlo: the share of trials that fill the target within 5 cycles when each atom survives a
   transfer (extract or implant) with ``p_t``, a one-site step with ``p_s`` and the cycle's streaming with
-  exp(-slots x 10 us / 60 s). Each cycle plans on the survivors, replays the plan atom by atom (the
-  validator's replay, so the counts are exact) and draws every atom's survival. An AOD chain (1x64) has
-  no extract or implant; a moved atom counts two transfers there, as the reference's model does.
+  exp(-slots x 10 us / 60 s). Each cycle plans on the survivors, follows every atom through the plan
+  (``replay_counts``: exact counts, checked atom by atom against the validator's ``replay`` in the tests)
+  and draws every atom's survival. An AOD chain (1x64) has no extract or implant; a moved atom counts two
+  transfers there, as the reference's model does.
 
-Instances are ``numpy.random.default_rng(seed)`` fillings with seeds from 0 up, keeping the solvable ones.
+Instances are ``numpy.random.default_rng(seed)`` fillings with seeds from 0 up, keeping the solvable ones
+(``solvable_fillings``, which ``llrs bench redrec`` draws from too).
 
     llrs bench solvers [--instances N] [--json] [--problems 32x64,...] [--planners ...] [--plots DIR]
 """
@@ -36,13 +38,15 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from engine.operations import Plan
+from engine.operations import EXTRACT, IMPLANT, SHIFT, Plan
 from engine.solvers import Solver, UnsolvableError
 from engine.solvers.validate import InvalidPlan, validate
 from engine.targets import centre_target
 
-__all__ = ["LOSS_MODELS", "PLANNERS", "PROBLEMS", "Problem", "bench_solvers", "plot_scaling", "register", "replay_counts",
-           "solvable_fillings"]
+__all__ = [
+    "LOSS_MODELS", "PLANNERS", "PROBLEMS", "Problem", "bench_solvers", "plot_scaling", "register", "replay_counts",
+    "solvable_fillings",
+]
 
 
 @dataclass(frozen=True)
@@ -155,43 +159,35 @@ def _count_tweezers(
     kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
     ident: np.ndarray, steps: np.ndarray, pickups: np.ndarray, held: np.ndarray,
 ) -> None:
-    """Replay crossed-AOD slots (assumed legal) moving atom ids in ``ident``; count steps and pick-ups."""
+    """Replay crossed-AOD slots (assumed legal) moving atom ids in ``ident``; count steps and pick-ups.
+
+    Every slot acts on the product set of its listed rows and columns (tweezer ``[a, b]`` over trap
+    ``[y_site[a], x_site[b]]``), so one walk over that set serves all three kinds."""
     ny, nx = ident.shape
     for i in range(kind.shape[0]):
         k = kind[i]
-        if k == 1:  # EXTRACT
-            for a in range(ny):
-                y = y_site[i, a]
-                if y < 0:
+        if k != EXTRACT and k != SHIFT and k != IMPLANT:
+            continue
+        for a in range(ny):
+            y = y_site[i, a]
+            if y < 0:
+                break
+            for b in range(nx):
+                x = x_site[i, b]
+                if x < 0:
                     break
-                for b in range(nx):
-                    x = x_site[i, b]
-                    if x < 0:
-                        break
-                    held[a, b] = ident[y, x]
-                    if ident[y, x] >= 0:
-                        pickups[ident[y, x]] += 1
+                atom = held[a, b]
+                if k == EXTRACT:
+                    atom = ident[y, x]
+                    held[a, b] = atom
                     ident[y, x] = -1
-        elif k == 2:  # SHIFT
-            for a in range(ny):
-                if y_site[i, a] < 0:
-                    break
-                for b in range(nx):
-                    if x_site[i, b] < 0:
-                        break
-                    if held[a, b] >= 0 and (y_delta[i, a] != 0 or x_delta[i, b] != 0):
-                        steps[held[a, b]] += 1
-        elif k == 3:  # IMPLANT
-            for a in range(ny):
-                y = y_site[i, a]
-                if y < 0:
-                    break
-                for b in range(nx):
-                    x = x_site[i, b]
-                    if x < 0:
-                        break
-                    if held[a, b] >= 0:
-                        ident[y, x] = held[a, b]
+                    if atom >= 0:
+                        pickups[atom] += 1
+                elif k == SHIFT:
+                    if atom >= 0 and (y_delta[i, a] != 0 or x_delta[i, b] != 0):
+                        steps[atom] += 1
+                elif atom >= 0:  # IMPLANT: the atom drops into the trap below
+                    ident[y, x] = atom
                     held[a, b] = -1
 
 

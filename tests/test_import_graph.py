@@ -1,5 +1,6 @@
 """No import circle anywhere in the project: the module graph of engine/, drivers/, server/, frontend/ and
-bench/, every import statement counted (function-level and ``TYPE_CHECKING`` ones too), has no cycle.
+bench/, every import statement counted (function-level and ``TYPE_CHECKING`` ones too), has no cycle, and
+its arrows point inward as ``docs/ARCHITECTURE.md`` draws them.
 
 A circle forces imports into functions to dodge it, hides which room depends on which, and breaks when
 someone moves an import to the top. When this fails, move what both modules need into a module of its own
@@ -106,3 +107,21 @@ def test_no_import_circle() -> None:
     assert not found, "import circles (move what both sides need into a module of its own):\n" + "\n".join(
         " <-> ".join(c) for c in found
     )
+
+
+def test_rooms_import_inward() -> None:
+    """engine imports no other room; drivers and frontend only engine; only the command line reaches bench."""
+    allowed = {
+        "engine": {"engine"},
+        "drivers": {"engine", "drivers"},
+        "frontend": {"engine", "frontend"},
+        "server": {"engine", "drivers", "frontend", "server"},
+        "bench": {"engine", "drivers", "server", "bench"},
+    }
+    wrong = [
+        f"{module} imports {target}"
+        for module, targets in sorted(import_graph().items())
+        for target in sorted(targets)
+        if target.split(".")[0] not in allowed[module.split(".")[0]] and module != "server.cli"
+    ]
+    assert not wrong, "imports against the direction in docs/ARCHITECTURE.md:\n" + "\n".join(wrong)

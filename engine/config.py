@@ -21,6 +21,9 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from engine.timing import REPLAY_HOST_S, STAGES
+from engine.errors import ConfigError
+from engine.targets import build_target
+from engine.tones import check_below_nyquist
 
 __all__ = [
     "ArrayConfig",
@@ -43,10 +46,6 @@ __all__ = [
     "load_config",
     "save_config",
 ]
-
-
-class ConfigError(ValueError):
-    """A configuration that cannot be used; the message names the field and what is allowed."""
 
 
 class _Model(BaseModel):
@@ -516,11 +515,8 @@ class SystemConfig(_Model):
                     f"is on; use at most {1.0 / self._n_tones(axis):.4g}"
                 )
             top = tones.start_hz + tones.spacing_hz * (self._n_tones(axis) - 1)
-            if top >= wf.sample_rate_hz / 2:
-                raise ValueError(
-                    f"array.{axis}: highest tone {top:g} Hz is above the Nyquist frequency "
-                    f"{wf.sample_rate_hz / 2:g} Hz; lower start_hz/spacing_hz or raise waveforms.sample_rate_hz"
-                )
+            check_below_nyquist(tones.start_hz, top, wf.sample_rate_hz, where=f"array.{axis}", error=ValueError,
+                                fix="lower start_hz/spacing_hz or raise waveforms.sample_rate_hz")
         cam = self.camera
         for r, c in ((0, 0), (self.array.ny - 1, 0), (0, self.array.nx - 1), (self.array.ny - 1, self.array.nx - 1)):
             x, y = cam.trap_pixel_xy(r, c)
@@ -534,8 +530,6 @@ class SystemConfig(_Model):
                 f"awg: n_steps ({self.awg.n_steps}) must be at least 2 * n_segments ({2 * self.awg.n_segments}): "
                 "every control step is paired with a failsafe step"
             )
-        from engine.targets import build_target  # local import: targets depends on this module
-
         build_target(self.target, nx=self.array.nx, ny=self.array.ny)
         return self
 

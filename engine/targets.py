@@ -2,15 +2,34 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 from numba import njit
 
-if TYPE_CHECKING:
-    from engine.config import TargetConfig
+__all__ = ["TargetSpec", "build_target", "centre_target", "rectangle_target", "target_filled"]
 
-__all__ = ["build_target", "centre_target", "rectangle_target", "target_filled"]
+
+class TargetSpec(Protocol):
+    """What ``build_target`` reads from a target description: ``engine.config.TargetConfig`` is one.
+
+    A protocol rather than the config model itself, so that the config (which checks its target with
+    ``build_target``) imports this module and not the other way round."""
+
+    @property
+    def kind(self) -> str: ...
+    @property
+    def count(self) -> int | None: ...
+    @property
+    def row0(self) -> int: ...
+    @property
+    def col0(self) -> int: ...
+    @property
+    def rows(self) -> int | None: ...
+    @property
+    def cols(self) -> int | None: ...
+    @property
+    def mask(self) -> list[str] | None: ...
 
 
 def centre_target(*, nx: int, ny: int, count: int) -> np.ndarray:
@@ -61,7 +80,7 @@ def _mask_target(*, nx: int, ny: int, mask: list[str]) -> np.ndarray:
     return target
 
 
-def build_target(cfg: TargetConfig, *, nx: int, ny: int) -> np.ndarray:
+def build_target(cfg: TargetSpec, *, nx: int, ny: int) -> np.ndarray:
     """Build the configured target; raises ValueError naming what is wrong."""
     if cfg.kind == "centre":
         if cfg.count is None:

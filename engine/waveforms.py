@@ -77,16 +77,14 @@ synthesizer of the same waveforms for tests.
 
 from __future__ import annotations
 
-import csv
 import math
-from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
 from engine.config import ConfigError, SystemConfig
 from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations
+from engine.tones import Tones, check_below_nyquist, schroeder_phases, tones_of
 
 __all__ = [
     "FULL_SCALE",
@@ -152,14 +150,6 @@ _ERRORS = {
 # static tones
 
 
-class Tones(NamedTuple):
-    """The static tone of every site of one axis (float64 arrays, one entry per site)."""
-
-    frequency_hz: np.ndarray
-    amplitude: np.ndarray  # fraction of full scale
-    phase_rad: np.ndarray
-
-
 def continuous_phases(cycles: np.ndarray, n_samples: int) -> np.ndarray:
     """Site phases that make every one-site move end exactly on the next site's phase with no correction.
 
@@ -175,48 +165,12 @@ def continuous_phases(cycles: np.ndarray, n_samples: int) -> np.ndarray:
     return np.pi * half_turns.astype(np.float64) / n_samples
 
 
-def schroeder_phases(n: int) -> np.ndarray:
-    """Low-crest-factor phases for ``n`` equal tones: ``phi_k = -pi k (k - 1) / n`` (mod 2 pi)."""
-    k = np.arange(n, dtype=np.float64)
-    return np.mod(-np.pi * k * (k - 1) / n, 2 * np.pi)
-
-
 def _axis_config(config: SystemConfig, axis: str):
     if axis not in ("x", "y"):
         raise ValueError(f"axis must be 'x' or 'y', not {axis!r}")
     tc = config.array.x_tones if axis == "x" else config.array.y_tones
     n = config.array.nx if axis == "x" else config.array.ny
     return tc, n
-
-
-def _read_tone_csv(path: str, axis: str, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    where = f"array.{axis}_tones.csv"
-    try:
-        with Path(path).open(newline="") as fh:
-            reader = csv.DictReader(fh)
-            cols = [c.strip() for c in (reader.fieldnames or [])]
-            missing = [c for c in ("alpha", "nu", "phi") if c not in cols]
-            if missing:
-                raise ConfigError(
-                    f"{where} {path}: needs columns alpha,nu,phi (amplitude fraction, Hz, rad); "
-                    f"missing {','.join(missing)} (header: {','.join(cols) or 'empty'})"
-                )
-            reader.fieldnames = cols
-            rows = []
-            for line, rec in enumerate(reader, start=2):
-                try:
-                    rows.append((float(rec["alpha"]), float(rec["nu"]), float(rec["phi"])))
-                except (TypeError, ValueError):
-                    raise ConfigError(
-                        f"{where} {path} line {line}: alpha, nu and phi must be numbers (got "
-                        f"{rec.get('alpha')!r}, {rec.get('nu')!r}, {rec.get('phi')!r})"
-                    ) from None
-    except OSError as err:
-        raise ConfigError(f"{where}: cannot read tone file {path}: {err.strerror or err}") from None
-    if len(rows) < n:
-        raise ConfigError(f"{where} {path} has {len(rows)} tone rows but the {axis} axis has {n} sites")
-    arr = np.asarray(rows[:n], dtype=np.float64)
-    return arr[:, 1].copy(), arr[:, 0].copy(), arr[:, 2].copy()
 
 
 def axis_tones(config: SystemConfig, axis: str) -> Tones:
@@ -231,12 +185,7 @@ def axis_tones(config: SystemConfig, axis: str) -> Tones:
     tc, n = _axis_config(config, axis)
     wf = config.waveforms
     where = f"array.{axis}_tones" + (".csv" if tc.csv is not None else "")
-    if tc.csv is None:
-        freq = tc.start_hz + tc.spacing_hz * np.arange(n, dtype=np.float64)
-        amp = np.full(n, tc.amplitude, dtype=np.float64)
-        phase = schroeder_phases(n) if tc.phases == "schroeder" else np.zeros(n)
-    else:
-        freq, amp, phase = _read_tone_csv(tc.csv, axis, n)
+    freq, amp, phase = tones_of(tc, n, axis)
     cycles = freq * wf.slot_duration_s
     bad = np.flatnonzero(np.abs(cycles - np.round(cycles)) > 1e-6)
     if bad.size:
@@ -251,10 +200,7 @@ def axis_tones(config: SystemConfig, axis: str) -> Tones:
             f"{where}: frequencies must be strictly ascending (tone {k + 1} at {freq[k + 1]:g} Hz "
             f"follows {freq[k]:g} Hz)"
         )
-    if freq[0] <= 0 or freq[-1] >= wf.sample_rate_hz / 2:
-        raise ConfigError(
-            f"{where}: tones span {freq[0]:g}..{freq[-1]:g} Hz, outside (0, Nyquist = {wf.sample_rate_hz / 2:g} Hz)"
-        )
+    check_below_nyquist(freq[0], freq[-1], wf.sample_rate_hz, where=where)
     if np.any(amp <= 0) or np.any(amp > 1):
         k = int(np.flatnonzero((amp <= 0) | (amp > 1))[0])
         raise ConfigError(f"{where}: tone {k} amplitude {amp[k]:g} must be in (0, 1] (a fraction of full scale)")

@@ -10,6 +10,7 @@ import json
 import sys
 from collections.abc import Sequence
 
+from bench import cli as bench_cli
 from engine.config import ConfigError, load_config
 from engine.records import ShotRecord, occupancy_to_rows
 from engine.timing import STAGES, summarize_us
@@ -117,18 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     run.set_defaults(func=_cmd_run)
     bench = sub.add_parser("bench", help="benchmarks that print figures (see docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
-    from server import bench_runtime
-
-    bench_runtime.register(bench_sub)
-    from server import bench_load
-
-    bench_load.register(bench_sub)
-    from server import bench_soak
-
-    bench_soak.register(bench_sub)
-    from server import bench_solvers
-
-    bench_solvers.register(bench_sub)
+    bench_cli.register(bench_sub)
     from server import devices_cmd
 
     devices_cmd.register(sub)

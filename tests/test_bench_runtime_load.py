@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.bench_load import run_load_bench
-from server.bench_runtime import (
+from bench.load import run_load_bench
+from bench.runtime import (
     SOFTWARE_STAGES,
     SOFTWARE_STAGES_WITH_RENDER,
     plot_stacked,
@@ -21,6 +21,7 @@ from server.bench_runtime import (
     runtime_figures,
     software_latencies_us,
 )
+from bench.soak import rss_mb, run_soak
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -53,6 +54,7 @@ def test_runtime_cli_prints_one_json_object_per_problem() -> None:
     assert set(figures["1x64"]["software_latency_us"]) == {"mean", "median", "p99", "max"}
 
 
+@pytest.mark.bench
 def test_load_bench_loads_the_server_and_reports_both_phases() -> None:
     result = run_load_bench(str(REPO / "examples/chain-1x64.yaml"), seconds=1.5, rate_hz=40, n_ws=3, cpu=None)
     assert result["engine"] == "process"
@@ -65,9 +67,8 @@ def test_load_bench_loads_the_server_and_reports_both_phases() -> None:
     assert np.isfinite(result["p99_growth"])
 
 
+@pytest.mark.bench
 def test_soak_records_every_shot_and_samples_both_processes() -> None:
-    from server.bench_soak import rss_mb, run_soak
-
     result = run_soak(str(REPO / "examples/chain-1x64.yaml"), 40, warmup=10, sample_every=10, progress=False)
     assert result["engine"] == "process"
     assert result["shots"] == result["shots_on_disk"] >= 40

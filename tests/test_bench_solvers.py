@@ -8,9 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from engine.solvers import solve
+from bench.solvers import PROBLEMS, _loss_trial, bench_solvers, format_row, plot_scaling, replay_counts
+from engine.solvers import Solver, solve
+from engine.solvers.validate import replay
 from engine.targets import centre_target
-from server.bench_solvers import PROBLEMS, bench_solvers, format_row, replay_counts
 from server.cli import main
 
 
@@ -38,6 +39,21 @@ def test_every_planner_runs_and_validates(small) -> None:
     assert "16x32" in format_row(rows[("16x32", "aod-parallel")])
 
 
+def _one_atom_replays(plan, occ: np.ndarray, trap_source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per atom, through the validator's public ``replay`` of the plan with only that atom loaded (a tweezer
+    moves whether or not it holds anything, so each atom goes where it goes in the full replay): its final
+    trap, pick-ups and one-site steps."""
+    where, pickups, steps = [], [], []
+    for trap in np.flatnonzero(occ.ravel()):
+        alone = np.zeros(occ.size, dtype=bool)
+        alone[trap] = True
+        report = replay(plan.operations, alone.reshape(occ.shape), trap_source=trap_source)
+        where.append(int(np.flatnonzero(report.occupancy.ravel())[0]))
+        pickups.append(report.max_pickups_per_atom)
+        steps.append(report.steps)
+    return np.asarray(where), np.asarray(pickups), np.asarray(steps)
+
+
 def test_replay_counts_follow_each_atom() -> None:
     target = centre_target(nx=8, ny=16, count=64)
     occ = np.random.default_rng(3).random((16, 8)) < 0.6
@@ -49,25 +65,30 @@ def test_replay_counts_follow_each_atom() -> None:
     assert final.reshape(occ.shape)[target].all()
     assert steps.sum() == plan.n_steps and np.all(transfers % 2 == 0) and np.all((steps > 0) <= (transfers > 0))
     # the compiled counting replay agrees with the validator's replay atom by atom
-    from engine.solvers.validate import _replay_tweezers
-
     for algorithm in ("red-rec-wide", "assignment", "aod-parallel"):
         plan = solve(occ, target, algorithm=algorithm)
         where, transfers, steps = replay_counts(plan, occ, "slm")
-        ident = np.full(occ.shape, -1, dtype=np.int64)
-        ident[occ] = np.arange(occ.sum())
-        ref_steps = np.zeros(occ.sum(), dtype=np.int64)
-        ref_pickups = np.zeros(occ.sum(), dtype=np.int64)
-        _replay_tweezers(plan.operations, ident, ref_steps, ref_pickups)
+        ref_where, ref_pickups, ref_steps = _one_atom_replays(plan, occ, "slm")
         assert np.array_equal(steps, ref_steps) and np.array_equal(transfers, 2 * ref_pickups)
-        assert np.array_equal(np.sort(where), np.flatnonzero(ident.ravel() >= 0))
-        assert np.array_equal(ident.ravel()[where], np.arange(occ.sum()))
+        assert np.array_equal(where, ref_where)
+        whole = replay(plan.operations, occ, trap_source="slm")
+        assert whole.steps == steps.sum() and whole.max_pickups_per_atom == transfers.max() // 2
+
+
+def test_replay_counts_on_a_chain_follow_the_slots() -> None:
+    """On a chain the counts come from the plan's one-site steps; the slots must move each atom the same."""
+    target = centre_target(nx=64, ny=1, count=32)
+    for seed in range(5):
+        occ = np.random.default_rng(seed).random((1, 64)) < 0.6
+        plan = solve(occ, target, algorithm="exact-1d", trap_source="aod")
+        where, transfers, steps = replay_counts(plan, occ, "aod")
+        ref_where, ref_pickups, ref_steps = _one_atom_replays(plan, occ, "aod")
+        assert np.array_equal(where, ref_where) and np.array_equal(steps, ref_steps)
+        assert np.all(ref_pickups == 0) and np.array_equal(transfers, 2 * (steps > 0))
+        assert steps.sum() == plan.n_steps > 0
 
 
 def test_lossless_monte_carlo_always_succeeds_at_perfect_survival() -> None:
-    from engine.solvers import Solver
-    from server.bench_solvers import _loss_trial
-
     target = centre_target(nx=8, ny=16, count=64)
     solver = Solver(nx=8, ny=16, algorithm="red-rec-wide")
     occ = np.random.default_rng(5).random((16, 8)) < 0.6
@@ -92,8 +113,6 @@ def test_cli_json_and_errors(capsys) -> None:
 
 def test_plots(tmp_path, small) -> None:
     pytest.importorskip("matplotlib")
-    from server.bench_solvers import plot_scaling
-
     paths = plot_scaling(small, tmp_path)
     assert [p.name for p in paths] == ["solvers_slots.png", "solvers_planning.png"]
     assert all(p.stat().st_size > 1000 for p in paths)

@@ -28,12 +28,13 @@ def test_yaml_round_trip(tmp_path: Path) -> None:
     [
         ({"array": {"nx": 0}}, "array.nx", "greater than or equal to 1"),
         ({"array": {"ny": 4, "trap_source": "aod"}}, "array", "ny = 1"),
-        ({"array": {"x_tones": {"spacing_hz": 1.05e6}}}, "", "multiple of"),
+        ({"array": {"x_tones": {"spacing_hz": 1.05e6}}}, "array.x_tones.spacing_hz", "multiple of"),
+        ({"array": {"x_tones": {"start_hz": 300e6}}}, "array.x_tones", "outside (0, Nyquist = 3.12e+08 Hz)"),
         ({"waveforms": {"shape": "square"}}, "waveforms.shape", "min-jerk"),
         ({"sim": {"loading_probability": 1.5}}, "sim.loading_probability", "less than or equal to 1"),
-        ({"target": {"count": 100}}, "", "between 1 and nx"),
+        ({"target": {"count": 100}}, "target.count", "between 1 and nx"),
         ({"imaging": {"psf_box_px": 6}}, "imaging", "odd"),
-        ({"camera": {"roi_width_px": 100}}, "", "outside"),
+        ({"camera": {"roi_width_px": 100}}, "camera", "outside the 100x16 ROI"),
         ({"bogus": 1}, "bogus", "Extra inputs"),
     ],
 )
@@ -41,7 +42,7 @@ def test_bad_values_name_the_field(data: dict, field: str, hint: str) -> None:
     with pytest.raises(ConfigError) as info:
         config_from_dict(data, source="test")
     message = str(info.value)
-    assert field in message
+    assert field and field in message  # every error names the field it is about
     assert hint in message
 
 

@@ -5,34 +5,23 @@ from __future__ import annotations
 
 import os
 import signal
-import time
+from collections.abc import Callable
 from functools import partial
 from operator import methodcaller
-from pathlib import Path
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
 
-from engine.config import SystemConfig, load_config
+from engine.config import SystemConfig
 from engine.devices import DeviceError
 from engine.process import EngineProcess, EngineProcessDied, default_engine_cpu, shot_with_frame
 from engine.records import Outcome
-from server.app import create_app
-from server.serve import build_engine, engine_host_factory
-from server.service import LabService
-
-CHAIN = Path(__file__).resolve().parents[1] / "examples" / "chain-1x64.yaml"
-
-
-def chain_config(**sim: object) -> SystemConfig:
-    config = load_config(CHAIN)
-    return config.model_copy(update={"sim": config.sim.model_copy(update={"lossless": True, **sim})})
+from server.serve import build_engine
 
 
 @pytest.fixture(scope="module")
-def engine_process():
-    with EngineProcess(partial(build_engine, chain_config())) as host:
+def engine_process(lossless_chain: SystemConfig):
+    with EngineProcess(partial(build_engine, lossless_chain)) as host:
         yield host
 
 
@@ -58,8 +47,8 @@ def test_errors_cross_the_boundary_with_their_type(engine_process: EngineProcess
     assert frames.shape == (2, 16, 1024)  # the engine is still there after both errors
 
 
-def test_a_build_that_fails_raises_its_own_error_in_start() -> None:
-    data = chain_config().model_dump()
+def test_a_build_that_fails_raises_its_own_error_in_start(lossless_chain: SystemConfig) -> None:
+    data = lossless_chain.model_dump()
     data["devices"]["awg"] = "spectrum"  # no Spectrum driver here
     host = EngineProcess(partial(build_engine, SystemConfig.model_validate(data)))
     with pytest.raises(DeviceError):
@@ -68,10 +57,10 @@ def test_a_build_that_fails_raises_its_own_error_in_start() -> None:
 
 
 @pytest.mark.skipif(default_engine_cpu() is None, reason="needs two cores to pin the engine")
-def test_pinning_keeps_the_server_off_the_engine_core() -> None:
+def test_pinning_keeps_the_server_off_the_engine_core(lossless_chain: SystemConfig) -> None:
     cpu = default_engine_cpu()
     before = os.sched_getaffinity(0)
-    host = EngineProcess(partial(build_engine, chain_config()), cpu=cpu).start(timeout_s=120)
+    host = EngineProcess(partial(build_engine, lossless_chain), cpu=cpu).start(timeout_s=120)
     try:
         assert os.sched_getaffinity(host.pid) == {cpu}
         assert cpu not in os.sched_getaffinity(0)
@@ -80,37 +69,32 @@ def test_pinning_keeps_the_server_off_the_engine_core() -> None:
     assert os.sched_getaffinity(0) == before
 
 
-def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers() -> None:
-    config = chain_config()
-    factory = engine_host_factory(in_process=True, cpu=None)
-    service = LabService(engine_thread=factory(config), engine_factory=factory, config=config, pause_s=0.0)
-    service.start()
-    try:
-        with TestClient(create_app(service=service)) as client:
-            assert client.post("/api/shots").status_code == 200
-            old = service._et
-            os.kill(old.pid, signal.SIGKILL)
-            deadline = time.monotonic() + 10
-            while old.alive and time.monotonic() < deadline:
-                time.sleep(0.05)
-            with pytest.raises(EngineProcessDied, match="signal 9"):
-                old.submit(shot_with_frame).result(timeout=10)
-            r = client.post("/api/shots")
-            assert r.status_code == 503 and "signal 9" in r.json()["detail"]
-            status = client.get("/api/status").json()
-            assert status["state"] == "fault" and "PUT /api/config" in status["reason"]
-            assert client.get("/api/shots").json()["total"] >= 1  # the history survived
-            # applying a configuration starts a new engine process
-            assert client.put("/api/config", json=config.model_dump(mode="json")).status_code == 200
-            assert client.get("/api/status").json()["state"] != "fault"
-            assert client.post("/api/shots").status_code == 200
-            assert service._et is not old and service._et.alive
-    finally:
-        service.close()
+def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers(
+    lossless_chain: SystemConfig, lab_server: Callable, wait_until: Callable
+) -> None:
+    with lab_server(lossless_chain) as (service, client):
+        assert client.post("/api/shots").status_code == 200
+        old = service._et
+        os.kill(old.pid, signal.SIGKILL)
+        wait_until(lambda: not old.alive, what="the killed engine process to be seen dead")
+        with pytest.raises(EngineProcessDied, match="signal 9"):
+            old.submit(shot_with_frame).result(timeout=10)
+        r = client.post("/api/shots")
+        assert r.status_code == 503 and "signal 9" in r.json()["detail"]
+        status = client.get("/api/status").json()
+        assert status["state"] == "fault" and "PUT /api/config" in status["reason"]
+        assert client.get("/api/shots").json()["total"] >= 1  # the history survived
+        # applying a configuration starts a new engine process
+        assert client.put("/api/config", json=lossless_chain.model_dump(mode="json")).status_code == 200
+        assert client.get("/api/status").json()["state"] != "fault"
+        assert client.post("/api/shots").status_code == 200
+        assert service._et is not old and service._et.alive
 
 
-def test_an_injected_fault_crosses_the_boundary_and_clears(engine_process: EngineProcess) -> None:
-    config = chain_config()
+def test_an_injected_fault_crosses_the_boundary_and_clears(
+    engine_process: EngineProcess, lossless_chain: SystemConfig
+) -> None:
+    config = lossless_chain
     data = config.model_dump()
     data["sim"]["faults"]["camera"] = "timeout"
     broken = SystemConfig.model_validate(data)

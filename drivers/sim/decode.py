@@ -53,14 +53,13 @@ BLAS blocking there), far below every threshold's margin.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from numba import njit
 
 from engine.config import SystemConfig
+from engine.tones import check_below_nyquist, tones_of
 
 __all__ = [
     "FULL_FRACTION",
@@ -119,22 +118,14 @@ class DecodeConfigError(ValueError):
 def site_tones(config: SystemConfig, axis: str) -> tuple[np.ndarray, np.ndarray]:
     """``(frequency_hz[n], amplitude[n])`` of the static tone of every site on ``axis`` ('x' or 'y').
 
-    The one place the simulated lab learns the comb: the evenly spaced ``start_hz + k * spacing_hz`` or the
-    ``alpha,nu,phi`` CSV, exactly as configured (amplitudes are fractions of full scale).
+    The one place the simulated lab learns the comb, read by ``engine.tones.tones_of`` exactly as the
+    waveform bank reads it: the evenly spaced ``start_hz + k * spacing_hz`` or the ``alpha,nu,phi`` CSV
+    (amplitudes are fractions of full scale).
     """
     tones = config.array.x_tones if axis == "x" else config.array.y_tones
     n = config.array.nx if axis == "x" else config.array.ny
-    if tones.csv is None:
-        freqs = tones.start_hz + tones.spacing_hz * np.arange(n, dtype=np.float64)
-        return freqs, np.full(n, tones.amplitude, dtype=np.float64)
-    rows: list[tuple[float, float]] = []
-    with Path(tones.csv).open(newline="") as fh:
-        for rec in csv.DictReader(fh):
-            rows.append((float(rec["nu"]), float(rec["alpha"])))
-    if len(rows) < n:
-        raise DecodeConfigError(f"array.{axis}_tones.csv {tones.csv} has {len(rows)} rows but the axis needs {n}")
-    arr = np.asarray(rows[:n], dtype=np.float64)
-    return arr[:, 0].copy(), arr[:, 1].copy()
+    site = tones_of(tones, n, axis)
+    return site.frequency_hz, site.amplitude
 
 
 @dataclass
@@ -189,11 +180,8 @@ class _AxisModel:
         half[2:-1:2] = 0.5 * (freqs_hz[:-1] + freqs_hz[1:])
         half[0] = freqs_hz[0] - 0.5 * first_gap
         half[-1] = freqs_hz[-1] + 0.5 * last_gap
-        if half[0] <= 0 or half[-1] >= sample_rate_hz / 2:
-            raise DecodeConfigError(
-                f"{axis} tones span {half[0]:g}..{half[-1]:g} Hz (with half-site margins), outside (0, "
-                f"Nyquist = {sample_rate_hz / 2:g}) Hz"
-            )
+        check_below_nyquist(half[0], half[-1], sample_rate_hz, where=f"{axis} axis (half-site margins included)",
+                            error=DecodeConfigError)
         self.grid_hz = half
         ref = np.empty_like(half)
         ref[1::2] = amps

@@ -15,43 +15,28 @@ it is applied rather than failing mid-shot.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Protocol
 
 import numpy as np
 
-from engine.operations import Plan
+from engine.operations import Operations, Plan
+from engine.solvers.base import Planner, PlannerError, UnsolvableError
 
 __all__ = ["ALGORITHMS", "OBJECTIVES", "Planner", "PlannerError", "Solver", "UnsolvableError", "solve"]
 
 
-class UnsolvableError(RuntimeError):
-    """Fewer atoms than target traps: no plan can fill the target (the shot ends, it is not a fault)."""
-
-
-class PlannerError(ValueError):
-    """A planner cannot handle this array, trap source or target; the message says which one can."""
-
-
-class Planner(Protocol):
-    nx: int
-    ny: int
-
-    def check_target(self, target: np.ndarray) -> None: ...
-
-    def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int: ...
-
-    def batch(self) -> Plan: ...
+# The factories import their planner's module when called, on purpose: only the configured planner loads
+# (the assignment planner alone pulls in scipy.optimize, about 0.5 s), and its numba kernels with it.
 
 
 def _exact_1d(nx: int, ny: int, trap_source: str) -> Planner:
-    from engine.solvers.exact1d import Exact1DPlanner
+    from engine.solvers.exact1d import Exact1DPlanner  # deferred on purpose, see above
 
     return Exact1DPlanner(nx, ny, trap_source=trap_source)
 
 
 def _red_rec(batching: str) -> Callable[[int, int, str], Planner]:
     def build(nx: int, ny: int, trap_source: str) -> Planner:
-        from engine.solvers.redrec import RedRecPlanner
+        from engine.solvers.redrec import RedRecPlanner  # deferred on purpose, see above
 
         if trap_source != "slm":
             raise PlannerError(
@@ -64,13 +49,13 @@ def _red_rec(batching: str) -> Callable[[int, int, str], Planner]:
 
 
 def _assignment(nx: int, ny: int, trap_source: str) -> Planner:
-    from engine.solvers.assignment import AssignmentPlanner
+    from engine.solvers.assignment import AssignmentPlanner  # deferred on purpose, see above
 
     return AssignmentPlanner(nx, ny, trap_source=trap_source)
 
 
 def _aod_parallel(nx: int, ny: int, trap_source: str, objective: str = "slots") -> Planner:
-    from engine.solvers.aod_parallel import AODParallelPlanner
+    from engine.solvers.aod_parallel import AODParallelPlanner  # deferred on purpose, see above
 
     if trap_source != "slm":
         raise PlannerError(
@@ -165,8 +150,6 @@ def solve(
 
 
 def _copy_plan(plan: Plan) -> Plan:
-    from engine.operations import Operations
-
     src = plan.operations
     ops = Operations(nx=src.nx, ny=src.ny, capacity=max(len(src), 1))
     n = len(src)

@@ -33,6 +33,7 @@ import numpy as np
 
 from engine.operations import Operations, Plan
 from engine.solvers.aod_parallel_kernels import OK, OVERFLOW, STUCK, UNSOLVABLE, emit_batches, find_rect, plan_rect
+from engine.solvers.base import PlannerError, UnsolvableError
 
 __all__ = ["MAX_TONES", "OBJECTIVES", "AODParallelPlanner"]
 
@@ -183,12 +184,8 @@ class AODParallelPlanner:
                 n_batches=2 * self._bmeta.shape[0], n_tones=2 * self._brow.shape[0], n_steps=2 * self._steps.shape[0]
             )
         if status == UNSOLVABLE:
-            from engine.solvers import UnsolvableError  # the package imports this module
-
             raise UnsolvableError(f"{int(occupancy.sum())} atoms cannot fill {int(target.sum())} target traps")
         if status == STUCK:
-            from engine.solvers import PlannerError
-
             raise PlannerError("aod-parallel could not balance the target columns with horizontal hops")
         assert status == OK
         self._nb, self._n_steps, self._n_slots = nb, n_steps, n_slots

@@ -28,6 +28,7 @@ from scipy.optimize import linear_sum_assignment
 
 from engine.operations import Operations, Plan
 from engine.solvers.assignment_batching import batch_hops, emit_hop_batches
+from engine.solvers.base import UnsolvableError
 
 __all__ = ["AssignmentPlanner"]
 
@@ -92,8 +93,6 @@ class AssignmentPlanner:
         free = np.argwhere(occ & ~target)
         holes = np.argwhere(target & ~occ)
         if len(free) < len(holes):
-            from engine.solvers import UnsolvableError  # the package imports this module
-
             raise UnsolvableError(f"{int(occupancy.sum())} atoms cannot fill {int(target.sum())} target traps")
         self._hops = []
         self._groups = [0]

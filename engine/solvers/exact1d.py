@@ -29,6 +29,7 @@ import numpy as np
 from numba import njit
 
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations, Plan
+from engine.solvers.base import UnsolvableError
 
 __all__ = ["Exact1DPlanner", "match_chain", "match_chain_reference", "plan_chain"]
 
@@ -280,7 +281,6 @@ class Exact1DPlanner:
         )  # fmt: skip
         if n_pairs < 0:
             self._n_steps = -1
-            from engine.solvers import UnsolvableError  # the package imports this module
 
             raise UnsolvableError(f"{int(occupancy.sum())} atoms cannot fill {int(target.sum())} target traps")
         if n_slots < 0:  # cannot happen: the table holds nx + 2 slots and a plan needs at most nx + 1

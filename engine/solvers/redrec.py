@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from engine.operations import Operations, Plan
+from engine.solvers.base import UnsolvableError
 from engine.solvers.column_batching import batch_segments
 from engine.solvers.redrec_solve import UNSOLVABLE, band_rows, solve_band
 
@@ -110,8 +111,6 @@ class RedRecPlanner:
             self._recv, self._slide, self._pos, self._seg, self._mv, self._steps,
         )  # fmt: skip
         if status == UNSOLVABLE:
-            from engine.solvers import UnsolvableError  # the package imports this module
-
             raise UnsolvableError(
                 f"{int(occupancy.sum())} atoms cannot fill {int(target.sum())} target traps"
             )

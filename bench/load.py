@@ -22,15 +22,15 @@ import sys
 import tempfile
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bench.runtime import REPO, SOFTWARE_STAGES_WITH_RENDER, software_latencies_us
 from engine.config import load_config
 from engine.records import ShotRecord
-from server.bench_runtime import REPO, SOFTWARE_STAGES_WITH_RENDER, software_latencies_us
-from server.serve import engine_cpu_arg
+from server.runstore import RunStore
+from server.serve import engine_cpu_arg, engine_host_factory
 
 __all__ = ["register", "run_load_bench", "run_load_clients"]
 
@@ -47,7 +47,7 @@ def _pct(values: list[float]) -> dict[str, float]:
 
 
 async def _clients(base: str, seconds: float, rate_hz: float, n_ws: int) -> dict[str, Any]:
-    import httpx
+    import httpx  # deferred on purpose: only the client process needs these
     import websockets
 
     ws_url = base.replace("http://", "ws://") + "/api/live"
@@ -135,11 +135,11 @@ def run_load_clients(base: str, seconds: float, rate_hz: float, n_ws: int) -> di
 
 
 def _serve(config_path: str, runs_dir: str, *, in_process: bool, cpu: int | None):  # noqa: ANN202 - (service, server, thread, url)
+    # deferred on purpose: ``llrs`` imports every benchmark to list it, and the web stack (fastapi, uvicorn,
+    # the lab service: about 2 s to import) should load only when this benchmark runs
     import uvicorn
 
     from server.app import create_app
-    from server.runstore import RunStore
-    from server.serve import engine_host_factory
     from server.service import LabService
 
     config = load_config(config_path)
@@ -175,7 +175,7 @@ def run_load_bench(
             _collect(service, min(2.0, seconds / 4))  # warm up: caches, the run file, the first shots
             idle = _collect(service, seconds)
             proc = subprocess.Popen(
-                [sys.executable, "-m", "server.bench_load", "--clients-only", base, "--seconds", str(seconds),
+                [sys.executable, "-m", "bench.load", "--clients-only", base, "--seconds", str(seconds),
                  "--rate", str(rate_hz), "--ws", str(n_ws)],
                 stdout=subprocess.PIPE, cwd=REPO, text=True,
             )

@@ -3,7 +3,7 @@
 For each batching prints, over seeded instances (after warm-up): median / p99 of ``solve_moves`` and of
 ``batch`` in microseconds, median / max waveform slots and median one-site steps.
 
-    .venv/bin/python benchmarks/bench_redrec.py [--instances 200] [--repeats 5]
+    llrs bench redrec [--instances 200] [--repeats 5] [--eps 0.6]
 """
 
 from __future__ import annotations
@@ -13,34 +13,21 @@ import time
 
 import numpy as np
 
+from bench.solvers import solvable_fillings
 from engine.solvers.redrec import BATCHINGS, RedRecPlanner
 from engine.targets import centre_target
+
+__all__ = ["register"]
 
 GRIDS = ((32, 16), (64, 32))  # (ny, nx): 16x32 -> 16x16 and 32x64 -> 32x32
 
 
-def _instances(ny: int, nx: int, n: int, target: np.ndarray, eps: float) -> list[np.ndarray]:
-    out = []
-    seed = 0
-    while len(out) < n:
-        occ = np.random.default_rng(seed).random((ny, nx)) < eps
-        seed += 1
-        if occ.sum() >= target.sum():
-            out.append(occ)
-    return out
-
-
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--instances", type=int, default=200)
-    ap.add_argument("--repeats", type=int, default=5, help="timed calls per instance (the minimum is kept)")
-    ap.add_argument("--eps", type=float, default=0.6)
-    args = ap.parse_args()
+def _cmd(args: argparse.Namespace) -> int:
     print(f"{'problem':<18}{'batching':<14}{'solve med':>10}{'p99':>8}{'batch med':>10}{'p99':>8}"
           f"{'plan med':>10}{'p99':>8}{'slots med':>10}{'max':>6}{'steps med':>10}")
     for ny, nx in GRIDS:
         target = centre_target(nx=nx, ny=ny, count=nx * ny // 2)
-        occs = _instances(ny, nx, args.instances, target, args.eps)
+        occs, _ = solvable_fillings(ny, nx, args.instances, loading=args.eps, need=int(target.sum()))
         for batching in BATCHINGS:
             planner = RedRecPlanner(nx, ny, batching=batching)
             for occ in occs[:10]:
@@ -68,7 +55,12 @@ def main() -> None:
                   f"{np.median(batch_us):>10.1f}{np.percentile(batch_us, 99):>8.1f}"
                   f"{np.median(plan_us):>10.1f}{np.percentile(plan_us, 99):>8.1f}"
                   f"{np.median(slots):>10.0f}{slots.max():>6}{np.median(steps):>10.0f}")
+    return 0
 
 
-if __name__ == "__main__":
-    main()
+def register(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser("redrec", help="red-rec's batchings on the paper's grids: solve and batch time, plan size")
+    p.add_argument("--instances", type=int, default=200, help="solvable instances per grid (default 200)")
+    p.add_argument("--repeats", type=int, default=5, help="timed calls per instance (the minimum is kept)")
+    p.add_argument("--eps", type=float, default=0.6, help="loading probability (default 0.6)")
+    p.set_defaults(func=_cmd)

@@ -5,7 +5,7 @@ Lookup is reported per slot (right after rendering the previous plan, and again 
 table waveform (one key: one precomputed moving-tone waveform fetched; a slot fetches one per moving tone).
 A chain plan is ~13 slots, so the ~2 us fixed cost of one numba call dominates the per-slot figure.
 
-    .venv/bin/python benchmarks/bench_chain_plan.py [--instances N]
+    llrs bench chain-plan [--instances N]
 """
 
 from __future__ import annotations
@@ -15,17 +15,17 @@ import time
 
 import numpy as np
 
+from bench.runtime import REPO
 from engine.config import load_config
 from engine.solvers import Solver
 from engine.targets import build_target
 from engine.waveforms import WaveformBank
 
+__all__ = ["register"]
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--instances", type=int, default=2000)
-    args = parser.parse_args()
-    config = load_config("examples/chain-1x64.yaml")
+
+def _cmd(args: argparse.Namespace) -> int:
+    config = load_config(REPO / "examples/chain-1x64.yaml")
     bank = WaveformBank(config)
     solver = Solver(nx=64, ny=1, algorithm="exact-1d", trap_source="aod")
     target = build_target(config.target, nx=64, ny=1)
@@ -68,7 +68,12 @@ def main() -> None:
     print(f"render keeps up with playback: {us(render_s, 50):.2f} us of host time per {slot_us:.0f} us slot "
           f"({us(render_s, 50) / slot_us:.2f} of real time; p99 {us(render_s, 99) / slot_us:.2f})")
     print(f"lookup table: {bank.table_bytes} bytes")
+    return 0
 
 
-if __name__ == "__main__":
-    main()
+def register(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser(
+        "chain-plan", help="modules III and IV for the 1x64 chain out of the loop: plan, lookup, render"
+    )
+    p.add_argument("--instances", type=int, default=2000, help="random fillings drawn at loading 0.6 (default 2000)")
+    p.set_defaults(func=_cmd)

@@ -121,6 +121,8 @@ def problem_config(problem: str, *, seed: int | None = None) -> SystemConfig:
 def run_problem(config: SystemConfig, shots: int, *, cpu: int | None = None) -> list[ShotRecord]:
     """Run ``shots`` shots of ``config`` on the simulated lab, in this thread (the engine's own loop), pinned
     to core ``cpu`` while it runs (as ``llrs serve`` pins its engine process; ``None``: not pinned)."""
+    # deferred on purpose: ``llrs`` imports every benchmark to list it; the engine and the simulated lab
+    # (about 1.5 s to import) load only when this benchmark runs
     from drivers.sim.lab import build_sim_lab
     from engine.engine import Engine
 
@@ -160,7 +162,7 @@ def _print(figures: dict[str, dict[str, Any]]) -> None:
 def plot_stacked(figures: dict[str, dict[str, Any]], path: str | Path) -> None:
     """Stacked bars per problem of the mean stage times, ours next to the paper's: the whole cycle (ms), and
     the host's stages II-IV without the camera and the card (us), where the differences are."""
-    import matplotlib
+    import matplotlib  # deferred on purpose: an optional (dev) dependency, and slow to import
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

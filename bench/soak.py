@@ -19,9 +19,11 @@ from typing import Any
 
 import h5py
 
+from bench.runtime import REPO
 from engine.config import load_config
 from engine.records import ShotRecord
-from server.bench_runtime import REPO
+from server.runstore import RunStore
+from server.serve import engine_host_factory
 
 __all__ = ["register", "rss_mb", "run_soak"]
 
@@ -45,8 +47,8 @@ def shots_on_disk(runs_dir: Path) -> int:
 def run_soak(
     config_path: str, shots: int, *, warmup: int, sample_every: int, progress: bool, in_process: bool = True
 ) -> dict[str, Any]:
-    from server.runstore import RunStore
-    from server.serve import engine_host_factory
+    # deferred on purpose: ``llrs`` imports every benchmark to list it; the lab service (about 1.3 s to import)
+    # loads only when this benchmark runs
     from server.service import LabService
 
     config = load_config(config_path)

@@ -13,11 +13,13 @@ each planner and problem it reports
   target (``invalid`` counts plans it rejects: the goal is zero);
 - a loss Monte Carlo: the share of trials that fill the target within 5 cycles when each atom survives a
   transfer (extract or implant) with ``p_t``, a one-site step with ``p_s`` and the cycle's streaming with
-  exp(-slots x 10 us / 60 s). Each cycle plans on the survivors, replays the plan atom by atom (the
-  validator's replay, so the counts are exact) and draws every atom's survival. An AOD chain (1x64) has
-  no extract or implant; a moved atom counts two transfers there, as the reference's model does.
+  exp(-slots x 10 us / 60 s). Each cycle plans on the survivors, follows every atom through the plan
+  (``replay_counts``: exact counts, checked atom by atom against the validator's ``replay`` in the tests)
+  and draws every atom's survival. An AOD chain (1x64) has no extract or implant; a moved atom counts two
+  transfers there, as the reference's model does.
 
-Instances are ``numpy.random.default_rng(seed)`` fillings with seeds from 0 up, keeping the solvable ones.
+Instances are ``numpy.random.default_rng(seed)`` fillings with seeds from 0 up, keeping the solvable ones
+(``solvable_fillings``, which ``llrs bench redrec`` draws from too).
 
     llrs bench solvers [--instances N] [--json] [--problems 32x64,...] [--planners ...] [--plots DIR]
 """
@@ -36,7 +38,15 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-__all__ = ["LOSS_MODELS", "PLANNERS", "PROBLEMS", "Problem", "bench_solvers", "plot_scaling", "register"]
+from engine.operations import EXTRACT, IMPLANT, SHIFT, Plan
+from engine.solvers import Solver, UnsolvableError
+from engine.solvers.validate import InvalidPlan, validate
+from engine.targets import centre_target
+
+__all__ = [
+    "LOSS_MODELS", "PLANNERS", "PROBLEMS", "Problem", "bench_solvers", "plot_scaling", "register", "replay_counts",
+    "solvable_fillings",
+]
 
 
 @dataclass(frozen=True)
@@ -52,8 +62,6 @@ class Problem:
         return "aod" if self.ny == 1 else "slm"
 
     def target(self) -> np.ndarray:
-        from engine.targets import centre_target
-
         return centre_target(nx=self.nx, ny=self.ny, count=self.nx * self.ny // 2)
 
 
@@ -97,14 +105,15 @@ def _applies(label: str, problem: Problem) -> bool:
     return True
 
 
-def _instances(problem: Problem, n: int) -> tuple[list[np.ndarray], int]:
-    """The first ``n`` solvable fillings (seeds 0, 1, ...) and how many seeds were unsolvable on the way."""
-    need = int(problem.target().sum())
+def solvable_fillings(ny: int, nx: int, n: int, *, loading: float, need: int) -> tuple[list[np.ndarray], int]:
+    """The first ``n`` fillings ``default_rng(seed).random((ny, nx)) < loading`` (seeds 0, 1, ...) holding at
+    least ``need`` atoms, and how many seeds had too few on the way. Every benchmark that compares planners
+    draws its instances here, so their figures are over the same fillings."""
     out: list[np.ndarray] = []
     seed = 0
     unsolvable = 0
     while len(out) < n:
-        occ = np.random.default_rng(seed).random((problem.ny, problem.nx)) < problem.loading
+        occ = np.random.default_rng(seed).random((ny, nx)) < loading
         seed += 1
         if occ.sum() >= need:
             out.append(occ)
@@ -113,13 +122,12 @@ def _instances(problem: Problem, n: int) -> tuple[list[np.ndarray], int]:
     return out, unsolvable
 
 
-def replay_counts(plan: Any, occupancy: np.ndarray, trap_source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def replay_counts(plan: Plan, occupancy: np.ndarray, trap_source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per atom (numbered in row-major order of ``occupancy``): its final trap (flat index), transfers
-    (extract + implant) and one-site steps. Chains use the validator's replay; crossed-AOD plans (already
-    validated) a compiled replay of the same rules that only counts (the validator's numpy replay takes
-    ~0.5 s for a 10 000-slot plan, too slow inside a Monte Carlo)."""
-    from engine.solvers.validate import _replay_chain
-
+    (extract + implant) and one-site steps. Chains follow the plan's one-site steps (one atom, one site each,
+    in execution order; ``validate`` proves they agree with the slots); crossed-AOD plans (already
+    validated) a compiled replay of the slots that only counts pick-ups too (the validator's numpy replay
+    takes ~0.5 s for a 10 000-slot plan, too slow inside a Monte Carlo)."""
     ny, nx = occupancy.shape
     ident = np.full((ny, nx), -1, dtype=np.int64)
     n_atoms = int(occupancy.sum())
@@ -127,7 +135,11 @@ def replay_counts(plan: Any, occupancy: np.ndarray, trap_source: str) -> tuple[n
     steps = np.zeros(n_atoms, dtype=np.int64)
     pickups = np.zeros(n_atoms, dtype=np.int64)
     if trap_source == "aod":
-        _replay_chain(plan.operations, ident, steps)
+        trap_atom = ident.ravel()  # a view: following a step moves the atom's id in ``ident``
+        for src, dst in plan.steps.tolist():
+            trap_atom[dst] = trap_atom[src]
+            trap_atom[src] = -1
+            steps[trap_atom[dst]] += 1
         transfers = 2 * (steps > 0)
     else:
         ops = plan.operations
@@ -147,43 +159,35 @@ def _count_tweezers(
     kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
     ident: np.ndarray, steps: np.ndarray, pickups: np.ndarray, held: np.ndarray,
 ) -> None:
-    """Replay crossed-AOD slots (assumed legal) moving atom ids in ``ident``; count steps and pick-ups."""
+    """Replay crossed-AOD slots (assumed legal) moving atom ids in ``ident``; count steps and pick-ups.
+
+    Every slot acts on the product set of its listed rows and columns (tweezer ``[a, b]`` over trap
+    ``[y_site[a], x_site[b]]``), so one walk over that set serves all three kinds."""
     ny, nx = ident.shape
     for i in range(kind.shape[0]):
         k = kind[i]
-        if k == 1:  # EXTRACT
-            for a in range(ny):
-                y = y_site[i, a]
-                if y < 0:
+        if k != EXTRACT and k != SHIFT and k != IMPLANT:
+            continue
+        for a in range(ny):
+            y = y_site[i, a]
+            if y < 0:
+                break
+            for b in range(nx):
+                x = x_site[i, b]
+                if x < 0:
                     break
-                for b in range(nx):
-                    x = x_site[i, b]
-                    if x < 0:
-                        break
-                    held[a, b] = ident[y, x]
-                    if ident[y, x] >= 0:
-                        pickups[ident[y, x]] += 1
+                atom = held[a, b]
+                if k == EXTRACT:
+                    atom = ident[y, x]
+                    held[a, b] = atom
                     ident[y, x] = -1
-        elif k == 2:  # SHIFT
-            for a in range(ny):
-                if y_site[i, a] < 0:
-                    break
-                for b in range(nx):
-                    if x_site[i, b] < 0:
-                        break
-                    if held[a, b] >= 0 and (y_delta[i, a] != 0 or x_delta[i, b] != 0):
-                        steps[held[a, b]] += 1
-        elif k == 3:  # IMPLANT
-            for a in range(ny):
-                y = y_site[i, a]
-                if y < 0:
-                    break
-                for b in range(nx):
-                    x = x_site[i, b]
-                    if x < 0:
-                        break
-                    if held[a, b] >= 0:
-                        ident[y, x] = held[a, b]
+                    if atom >= 0:
+                        pickups[atom] += 1
+                elif k == SHIFT:
+                    if atom >= 0 and (y_delta[i, a] != 0 or x_delta[i, b] != 0):
+                        steps[atom] += 1
+                elif atom >= 0:  # IMPLANT: the atom drops into the trap below
+                    ident[y, x] = atom
                     held[a, b] = -1
 
 
@@ -192,8 +196,6 @@ def _loss_trial(
     rng: np.random.Generator,
 ) -> tuple[bool, int]:
     """One shot under loss: (filled within MAX_CYCLES cycles, rearranging cycles used)."""
-    from engine.solvers import UnsolvableError
-
     occ = occ.copy()
     for cycle in range(MAX_CYCLES):
         if np.all(occ[target]):
@@ -220,9 +222,6 @@ def bench_one(
     slot_s: float = 10e-6, seed: int = 0,
 ) -> dict[str, Any]:
     """All figures for one planner on one problem (``occs``: solvable instances)."""
-    from engine.solvers import Solver
-    from engine.solvers.validate import InvalidPlan, validate
-
     algorithm, objective = PLANNERS[label]
     target = problem.target()
     t0 = time.perf_counter()
@@ -323,7 +322,8 @@ def bench_solvers(
     seeds_unsolvable = {}
     for problem in chosen:
         n = instances if problem.group != "scaling" or scaling_instances is None else scaling_instances
-        occs, unsolvable = _instances(problem, n)
+        occs, unsolvable = solvable_fillings(problem.ny, problem.nx, n, loading=problem.loading,
+                                             need=int(problem.target().sum()))
         seeds_unsolvable[problem.name] = unsolvable
         for label in labels:
             if not _applies(label, problem):
@@ -370,7 +370,7 @@ def format_row(r: dict[str, Any]) -> str:
 
 def plot_scaling(data: dict[str, Any], out_dir: Path) -> list[Path]:
     """Slots and planning time against array size (traps) per planner: two PNGs (needs matplotlib)."""
-    import matplotlib
+    import matplotlib  # deferred on purpose: an optional (dev) dependency, and slow to import
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -3,7 +3,7 @@
 Configurations as in the paper's Table 1: 64 traps (1x64 chain, ROI 16x1024) and 2048 traps (32x64 grid,
 ROI 512x1024), 7x7 PSF box, on simulated frames with ~60 % loading. Prints median and p99 per call.
 
-    .venv/bin/python benchmarks/bench_imaging.py [--repeats 5000]
+    llrs bench imaging [--repeats 5000]
 """
 
 from __future__ import annotations
@@ -14,10 +14,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.sim.camera import SimCamera
-from drivers.sim.clock import SimClock
 from engine.config import SystemConfig
-from engine.imaging import Detector, calibration_frames, threshold_reference, weighted_sums_reference
+
+__all__ = ["register"]
 
 
 def _configs() -> dict[str, SystemConfig]:
@@ -41,10 +40,13 @@ def _time_us(call: Callable[[], object], repeats: int) -> tuple[float, float]:
     return float(np.median(samples)) / 1e3, float(np.percentile(samples, 99)) / 1e3
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5000)
-    args = parser.parse_args()
+def _cmd(args: argparse.Namespace) -> int:
+    # deferred on purpose: ``llrs`` imports every benchmark to list it; the imaging stack (scipy: about 1.5 s to import)
+    # loads only when this benchmark runs
+    from drivers.sim.camera import SimCamera
+    from drivers.sim.clock import SimClock
+    from engine.imaging import Detector, calibration_frames, threshold_reference, weighted_sums_reference
+
     rng = np.random.default_rng(7)
     print(f"{'configuration':36s} {'implementation':16s} {'median us':>10s} {'p99 us':>10s}")
     for name, config in _configs().items():
@@ -68,7 +70,12 @@ def main() -> None:
         for impl, call in rows.items():
             median_us, p99_us = _time_us(call, args.repeats)
             print(f"{name:36s} {impl:16s} {median_us:10.2f} {p99_us:10.2f}")
+    return 0
 
 
-if __name__ == "__main__":
-    main()
+def register(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser(
+        "imaging", help="module II: numba detect against the plain-numpy reference, 64 and 2048 traps"
+    )
+    p.add_argument("--repeats", type=int, default=5000, help="timed calls per configuration (default 5000)")
+    p.set_defaults(func=_cmd)

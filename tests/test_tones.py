@@ -36,7 +36,7 @@ def test_bank_and_decoder_read_the_same_tones_whatever_the_header_spacing(tmp_pa
 
 
 def test_the_comb_is_read_the_same_way_too() -> None:
-    config = chain_config(8)
+    config = chain_config(8, array={"x_tones": {"phases": "schroeder"}})
     tc = config.array.x_tones
     tones = tones_of(tc, 8, "x")
     assert np.allclose(tones.frequency_hz, tc.start_hz + tc.spacing_hz * np.arange(8))

@@ -104,6 +104,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from server import bench_solvers
 
     bench_solvers.register(bench_sub)
+    from bench import assembly
+
+    assembly.register(bench_sub)
     from server import devices_cmd
 
     devices_cmd.register(sub)

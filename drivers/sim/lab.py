@@ -51,19 +51,34 @@ class SimLab:
         self.awg.sync()
         return self.world.occupancy().copy()
 
+    def reseed(self, seed: int) -> None:
+        """Restart the world's and the camera's random numbers from ``seed``, as ``build_sim_lab`` seeds them.
+
+        The next shot then depends only on ``seed`` and the configuration, not on the shots run before it, so a
+        sweep may split its shots across processes or machines and still get the same outcomes.
+        """
+        world_rng, camera_rng = _generators(seed)
+        self.world.rng = world_rng
+        self.camera.rng = camera_rng
+
+
+def _generators(seed: int | None) -> tuple[np.random.Generator, np.random.Generator]:
+    """Independent generators for the world and the camera, derived from one seed."""
+    world_seed, camera_seed = np.random.SeedSequence(seed).spawn(2)
+    return np.random.default_rng(world_seed), np.random.default_rng(camera_seed)
+
 
 def build_sim_lab(config: SystemConfig) -> tuple[DeviceSet, SimLab]:
     clock = SimClock(config.sim.time)
-    seed = np.random.SeedSequence(config.sim.seed)
-    world_seed, camera_seed = seed.spawn(2)
-    world = World(config, clock=clock, rng=np.random.default_rng(world_seed))
+    world_rng, camera_rng = _generators(config.sim.seed)
+    world = World(config, clock=clock, rng=world_rng)
     awg = SimAWG(world, clock, config)
 
     def atoms_now() -> np.ndarray:
         awg.sync()
         return world.occupancy()
 
-    camera = SimCamera(config, atoms=atoms_now, clock=clock, rng=np.random.default_rng(camera_seed))
+    camera = SimCamera(config, atoms=atoms_now, clock=clock, rng=camera_rng)
     lab = SimLab(world, awg, camera)
     lab.configure(config)
     return DeviceSet(camera=camera, awg=awg, clock=clock), lab

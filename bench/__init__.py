@@ -1,0 +1,1 @@
+"""Benchmarks that print figures (``llrs bench ...``); see docs/benchmarks.md."""

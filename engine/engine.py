@@ -174,6 +174,7 @@ class Engine:
             self.lab.prepare_shot()
         p.timer.reset()
         latencies = np.zeros(p.config.loop.max_cycles + 1)
+        cycle_times = np.zeros((p.config.loop.max_cycles + 1, 2))  # cycle began, image in memory (clock s)
         plan_stats = np.zeros((p.config.loop.max_cycles + 1, 3), dtype=np.int64)  # slots, steps, underruns
         n_cycles = 0
         gc_was_enabled = gc.isenabled()
@@ -182,7 +183,7 @@ class Engine:
             for cycle in range(p.config.loop.max_cycles + 1):
                 p.timer.cycle = cycle
                 n_cycles = cycle + 1
-                outcome = self._cycle(p, cycle, latencies, plan_stats)
+                outcome = self._cycle(p, cycle, latencies, plan_stats, cycle_times)
                 if outcome is not None:
                     record.outcome = outcome
                     break
@@ -207,6 +208,8 @@ class Engine:
                     n_steps=int(plan_stats[c, 1]),
                     underruns=int(plan_stats[c, 2]),
                     latency_s=float(latencies[c]),
+                    t_start_s=float(cycle_times[c, 0] - record.t_start_s),
+                    t_image_s=float(cycle_times[c, 1] - record.t_start_s),
                 )
             )
         if self.lab is not None:
@@ -235,15 +238,18 @@ class Engine:
             )
         return bool(wait(timeout_s=timeout_s))
 
-    def _cycle(self, p: _Pipeline, cycle: int, latencies: np.ndarray, plan_stats: np.ndarray) -> Outcome | None:
+    def _cycle(
+        self, p: _Pipeline, cycle: int, latencies: np.ndarray, plan_stats: np.ndarray, cycle_times: np.ndarray
+    ) -> Outcome | None:
         dev = self.devices
         timer = p.timer
-        timer.start()
+        cycle_times[cycle, 0] = timer.start()
         dev.awg.pulse("camera")
         dev.camera.trigger()
         self._rehearse(p)
         dev.camera.read(p.image, timeout_s=p.config.camera.timeout_s)
         t_image = timer.lap("I.acquire")
+        cycle_times[cycle, 1] = t_image
         p.detector.sum(p.image)
         timer.lap("II.detect")
         p.detector.classify(p.occupancy)

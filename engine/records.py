@@ -34,6 +34,8 @@ class CycleRecord:
     n_steps: int = 0
     underruns: int = 0
     latency_s: float = 0.0  # image in memory -> playback started
+    t_start_s: float = 0.0  # the cycle began (camera triggered), seconds after the shot began
+    t_image_s: float = 0.0  # its image was in host memory, seconds after the shot began
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -46,6 +48,8 @@ class CycleRecord:
             "n_steps": self.n_steps,
             "underruns": self.underruns,
             "latency_us": self.latency_s * 1e6,
+            "t_start_ms": self.t_start_s * 1e3,
+            "t_image_ms": self.t_image_s * 1e3,
         }
 
 

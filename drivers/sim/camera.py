@@ -473,6 +473,15 @@ class SimCamera:
         return self._readout
 
     @property
+    def rng(self) -> np.random.Generator:
+        """The generator of the camera's noise (photon counts, EM gain, read noise, torn frames)."""
+        return self._rng
+
+    @rng.setter
+    def rng(self, rng: np.random.Generator) -> None:
+        self._rng = rng
+
+    @property
     def fail_next_read(self) -> FaultKind | None:
         return self._fail_next_read
 

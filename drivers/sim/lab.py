@@ -51,19 +51,36 @@ class SimLab:
         self.awg.sync()
         return self.world.occupancy().copy()
 
+    def reseed(self, seed: int) -> None:
+        """Restart the world's and the camera's random numbers from ``seed``, as ``build_sim_lab`` seeds them.
+
+        The next shot then depends only on ``seed`` and the configuration, not on the shots run before it, so a
+        sweep may split its shots across processes or machines and still get the same outcomes.
+        """
+        world_rng, camera_rng, awg_rng = _generators(seed)
+        self.world.reseed(world_rng)
+        self.camera.rng = camera_rng
+        self.awg.rng = awg_rng
+
+
+def _generators(seed: int | None) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
+    """One stream per device, derived from one seed (the world splits its own per kind of event), so that no
+    device's draws shift another's: (world, camera, AWG)."""
+    world_seed, camera_seed, awg_seed = np.random.SeedSequence(seed).spawn(3)
+    return np.random.default_rng(world_seed), np.random.default_rng(camera_seed), np.random.default_rng(awg_seed)
+
 
 def build_sim_lab(config: SystemConfig) -> tuple[DeviceSet, SimLab]:
     clock = SimClock(config.sim.time, config.sim.replay_host_s)
-    # one stream per device (the world splits its own per kind of event), so that no device's draws shift another's
-    world_seed, camera_seed, awg_seed = np.random.SeedSequence(config.sim.seed).spawn(3)
-    world = World(config, clock=clock, rng=np.random.default_rng(world_seed))
-    awg = SimAWG(world, clock, config, rng=np.random.default_rng(awg_seed))
+    world_rng, camera_rng, awg_rng = _generators(config.sim.seed)
+    world = World(config, clock=clock, rng=world_rng)
+    awg = SimAWG(world, clock, config, rng=awg_rng)
 
     def exposure(t0_s: float, exposure_s: float) -> np.ndarray:
         awg.sync()
         return world.expose(t0_s, exposure_s)
 
-    camera = SimCamera(config, atoms=exposure, clock=clock, rng=np.random.default_rng(camera_seed))
+    camera = SimCamera(config, atoms=exposure, clock=clock, rng=camera_rng)
     lab = SimLab(world, awg, camera)
     lab.configure(config)
     return DeviceSet(camera=camera, awg=awg, clock=clock), lab

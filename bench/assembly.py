@@ -1,0 +1,312 @@
+"""``llrs bench assembly``: how often, and how soon, a shot ends with a defect-free array.
+
+The physicist's figure, measured the only way that can be trusted: closed-loop shots on the simulated lab
+(real waveforms, samples decoded by the simulated AWG, atoms moved and lost by the simulated world, images
+rendered by the simulated camera), with success judged from the world's ground truth when the shot ends,
+which is when the experiment would begin. Nothing here models the loop: a Monte Carlo that disagrees with
+these figures is wrong until shown otherwise.
+
+A *cell* is one problem (a shipped example), one planner and one loss model (survival per transfer and per
+step, vacuum lifetime). Every cell runs the same shot seeds (shot ``j`` is seeded from ``(seed, j)``), so
+two planners are compared on the same loaded arrays, and a shot's outcome depends only on its seed and its
+cell, not on which process ran it or what ran before: a sweep splits its shots into chunks and runs them on
+**dask.distributed**, a local cluster by default or ``--scheduler ADDRESS`` for a real one, unchanged.
+
+Reported per cell: success (world truth) with a 95 % Wilson interval and what the engine believed from its
+last image; rearrangement cycles (mean, p90); time to a defect-free array (first exposure to the final image
+that shows the target filled, successful shots: median, p90); the vacuum bound
+``exp(-n_target * T_last / lifetime)`` with ``T_last`` from each shot's last exposure to its end (a shot
+cannot beat the chance that no target atom dies in that time); and atoms lost per rearrangement cycle by
+cause, as the world counted them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from engine.config import SystemConfig, load_config
+from engine.records import ShotRecord
+
+__all__ = [
+    "LOSS_MODELS",
+    "PROBLEMS",
+    "Cell",
+    "CellResult",
+    "cell_config",
+    "format_table",
+    "register",
+    "run_cells",
+    "run_chunk",
+    "shot_seeds",
+    "summarize",
+    "wilson_interval",
+]
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+PROBLEMS = {"1x64": "chain-1x64.yaml", "16x32": "grid-16x32.yaml", "32x64": "grid-32x64.yaml"}
+LOSS_MODELS: dict[str, tuple[float, float] | None] = {
+    "lossless": None,
+    "0.995/0.999": (0.995, 0.999),
+    "0.985/0.985": (0.985, 0.985),
+}
+LOSS_CAUSES = ("transfer", "step", "vacuum", "collision", "dropped", "released")
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One row of the table: a problem, a planner (``None``: the example's own) and a loss model."""
+
+    problem: str
+    planner: str | None
+    loss: str
+    lifetime_s: float
+
+    def label(self) -> dict[str, Any]:
+        return {"problem": self.problem, "planner": self.planner, "loss": self.loss, "lifetime_s": self.lifetime_s}
+
+
+def cell_config(
+    cell: Cell, *, loading: float = 0.6, max_cycles: int = 5, examples: Path = EXAMPLES
+) -> SystemConfig:
+    """The example's configuration with the cell's planner, loss model and lifetime (validated as any config)."""
+    if cell.problem not in PROBLEMS:
+        raise ValueError(f"unknown problem {cell.problem!r}; choose from {', '.join(PROBLEMS)}")
+    if cell.loss not in LOSS_MODELS:
+        raise ValueError(f"unknown loss model {cell.loss!r}; choose from {', '.join(LOSS_MODELS)}")
+    base = load_config(examples / PROBLEMS[cell.problem]).model_dump(mode="json")
+    survival = LOSS_MODELS[cell.loss]
+    sim = base["sim"]
+    sim.update(loading_probability=loading, vacuum_lifetime_s=cell.lifetime_s, lossless=survival is None)
+    if survival is not None:
+        sim.update(survival_transfer=survival[0], survival_step=survival[1])
+    base["loop"]["max_cycles"] = max_cycles
+    if cell.planner is not None:
+        base["solver"]["algorithm"] = cell.planner
+    return SystemConfig.model_validate(base)
+
+
+def shot_seeds(seed: int, n_shots: int) -> list[int]:
+    """Shot ``j``'s seed from ``(seed, j)``: the same in every cell and however the shots are chunked."""
+    return [int(np.random.SeedSequence([seed, j]).generate_state(1)[0]) for j in range(n_shots)]
+
+
+def _shot_summary(record: ShotRecord, lost: dict[str, int], n_target: int, lifetime_s: float) -> dict[str, Any]:
+    cycles = record.cycles
+    rearrangements = sum(1 for c in cycles if c.n_slots > 0)
+    filled = bool(record.truth.get("target_filled", False))
+    time_to_array_s = cycles[-1].t_image_s - cycles[0].t_start_s if (filled and record.success) else None
+    t_last_s = record.duration_s - cycles[-1].t_start_s if cycles else record.duration_s
+    return {
+        "filled": filled,
+        "engine_success": record.success,
+        "outcome": record.outcome.value,
+        "rearrangements": rearrangements,
+        "time_to_array_s": time_to_array_s,
+        "t_last_s": t_last_s,
+        "vacuum_bound": math.exp(-n_target * t_last_s / lifetime_s),
+        "lost": lost,
+        "underruns": sum(c.underruns for c in cycles),
+        "fault": record.fault,
+    }
+
+
+def run_chunk(config_json: str, seeds: Sequence[int]) -> list[dict[str, Any]]:
+    """Run one shot per seed on a fresh simulated lab (what a dask worker executes); one summary per shot."""
+    # deferred on purpose: ``llrs`` imports every benchmark to list it, and the engine with the simulated lab
+    # (numba kernels, scipy) takes seconds to import
+    from drivers.sim.lab import build_sim_lab
+    from engine.engine import Engine
+
+    config = SystemConfig.model_validate_json(config_json)
+    devices, lab = build_sim_lab(config)
+    try:
+        engine = Engine(config, devices, lab=lab)
+        n_target = int(engine.target.sum())
+        out = []
+        for seed in seeds:
+            lab.reseed(seed)
+            before = lab.world.counters.as_dict()
+            record = engine.run_shot()
+            after = lab.world.counters.as_dict()
+            lost = {cause: after[f"lost_{cause}"] - before[f"lost_{cause}"] for cause in LOSS_CAUSES}
+            out.append(_shot_summary(record, lost, n_target, config.sim.vacuum_lifetime_s))
+        return out
+    finally:
+        devices.close()
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % score interval of a binomial proportion (sensible at 0 % and 100 %, unlike the normal one)."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+@dataclass
+class CellResult:
+    cell: Cell
+    shots: list[dict[str, Any]]
+    error: str | None = None
+
+
+def summarize(result: CellResult) -> dict[str, Any]:
+    """One table row from a cell's shot summaries (all shots counted, faults included)."""
+    row: dict[str, Any] = result.cell.label()
+    if result.error is not None:
+        return {**row, "error": result.error}
+    shots = result.shots
+    n = len(shots)
+    filled = sum(s["filled"] for s in shots)
+    lo, hi = wilson_interval(filled, n)
+    cycles = np.array([s["rearrangements"] for s in shots], dtype=float)
+    times = np.array([s["time_to_array_s"] for s in shots if s["time_to_array_s"] is not None], dtype=float)
+    total_cycles = max(int(cycles.sum()), 1)
+    bound = float(np.mean([s["vacuum_bound"] for s in shots])) if shots else float("nan")
+    return {
+        **row,
+        "shots": n,
+        "success": filled / n if n else float("nan"),
+        "success_ci95": [lo, hi],
+        "engine_believed": sum(s["engine_success"] for s in shots) / n if n else float("nan"),
+        "cycles_mean": float(cycles.mean()) if n else float("nan"),
+        "cycles_p90": float(np.percentile(cycles, 90)) if n else float("nan"),
+        "time_to_array_ms_median": float(np.median(times) * 1e3) if times.size else None,
+        "time_to_array_ms_p90": float(np.percentile(times, 90) * 1e3) if times.size else None,
+        "vacuum_bound": bound,
+        "lost_per_cycle": {c: sum(s["lost"][c] for s in shots) / total_cycles for c in LOSS_CAUSES},
+        "underruns": sum(s["underruns"] for s in shots),
+        "faults": sum(1 for s in shots if s["fault"]),
+    }
+
+
+def run_cells(
+    cells: Sequence[Cell],
+    *,
+    shots: int,
+    seed: int = 1,
+    chunk: int = 20,
+    loading: float = 0.6,
+    max_cycles: int = 5,
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> list[CellResult]:
+    """Run every cell's shots on a dask cluster (local unless ``scheduler`` names one); results in cell order."""
+    from dask.distributed import Client, LocalCluster  # noqa: PLC0415 - the cluster stack loads only for sweeps
+
+    seeds = shot_seeds(seed, shots)
+    configs: dict[Cell, str] = {}
+    results = {cell: CellResult(cell, []) for cell in cells}
+    for cell in cells:
+        try:
+            configs[cell] = cell_config(cell, loading=loading, max_cycles=max_cycles).model_dump_json()
+        except ValueError as err:
+            results[cell].error = str(err)
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(
+            n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True, dashboard_address=None
+        )
+    client = Client(scheduler if scheduler is not None else cluster)
+    try:
+        futures = [
+            (cell, start, client.submit(run_chunk, cfg, seeds[start : start + chunk], pure=False))
+            for cell, cfg in configs.items()
+            for start in range(0, shots, chunk)
+        ]
+        chunks: dict[Cell, dict[int, list[dict[str, Any]]]] = {cell: {} for cell in configs}
+        for cell, start, future in futures:
+            try:
+                chunks[cell][start] = future.result()
+            except Exception as err:  # noqa: BLE001 - a cell the engine refuses is reported, the sweep goes on
+                results[cell].error = f"{type(err).__name__}: {err}"
+        for cell, by_start in chunks.items():
+            if results[cell].error is None:
+                results[cell].shots = [s for start in sorted(by_start) for s in by_start[start]]
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return [results[cell] for cell in cells]
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:5.1f}"
+
+
+def format_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The rows as a markdown table (what docs/benchmarks.md quotes)."""
+    head = (
+        "| problem | planner | loss (transfer/step) | lifetime s | shots | success % [95 % CI] | engine believed % "
+        "| cycles mean / p90 | time to array ms median / p90 | vacuum bound % | lost per cycle: "
+        + " / ".join(LOSS_CAUSES)
+        + " |"
+    )
+    lines = [head, "|" + "---|" * 11]
+    for r in rows:
+        label = f"| {r['problem']} | {r['planner'] or 'example'} | {r['loss']} | {r['lifetime_s']:g} "
+        if "error" in r:
+            lines.append(label + f"| - | refused: {r['error']} | | | | | |")
+            continue
+        t_med, t_p90 = r["time_to_array_ms_median"], r["time_to_array_ms_p90"]
+        times = f"{t_med:.1f} / {t_p90:.1f}" if t_med is not None else "-"
+        lost = " / ".join(f"{r['lost_per_cycle'][c]:.2f}" for c in LOSS_CAUSES)
+        lines.append(
+            label + f"| {r['shots']} | {_pct(r['success'])} [{_pct(r['success_ci95'][0])}, {_pct(r['success_ci95'][1])}] "
+            f"| {_pct(r['engine_believed'])} | {r['cycles_mean']:.2f} / {r['cycles_p90']:.0f} | {times} "
+            f"| {_pct(r['vacuum_bound'])} | {lost} |"
+        )
+    return "\n".join(lines)
+
+
+def _csv(text: str) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    planners: list[str | None] = [None if p == "example" else p for p in _csv(args.planners)]
+    cells = [
+        Cell(problem=problem, planner=planner, loss=loss, lifetime_s=float(lifetime))
+        for problem in _csv(args.problems)
+        for planner in planners
+        for loss in _csv(args.loss)
+        for lifetime in _csv(args.lifetime)
+    ]
+    results = run_cells(
+        cells, shots=args.shots, seed=args.seed, chunk=args.chunk, loading=args.loading,
+        max_cycles=args.max_cycles, scheduler=args.scheduler, workers=args.workers,
+    )
+    rows = [summarize(r) for r in results]
+    if args.json:
+        print(json.dumps({"shots_per_cell": args.shots, "seed": args.seed, "rows": rows}))
+    else:
+        print(format_table(rows))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg] - argparse's private class
+    p = sub.add_parser("assembly", help="closed-loop success and time to a defect-free array, on a dask cluster")
+    p.add_argument("--problems", default="32x64", help=f"comma-separated, from {', '.join(PROBLEMS)} (default 32x64)")
+    p.add_argument("--planners", default="example", help="comma-separated planners; 'example': the example's own")
+    p.add_argument("--loss", default="0.995/0.999", help=f"comma-separated, from {', '.join(LOSS_MODELS)}")
+    p.add_argument("--lifetime", default="6000", help="comma-separated vacuum lifetimes in s (default 6000)")
+    p.add_argument("--shots", type=int, default=200, help="shots per cell (default 200)")
+    p.add_argument("--seed", type=int, default=1, help="base seed: shot j of every cell is seeded from (seed, j)")
+    p.add_argument("--chunk", type=int, default=20, help="shots per dask task (default 20)")
+    p.add_argument("--loading", type=float, default=0.6, help="loading probability (default 0.6)")
+    p.add_argument("--max-cycles", type=int, default=5, help="rearrangement cycles at most (default 5)")
+    p.add_argument("--scheduler", default=None, help="dask scheduler address (default: a local cluster)")
+    p.add_argument("--workers", type=int, default=None, help="local cluster workers (default: one per core)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    p.set_defaults(func=_cmd)

@@ -69,15 +69,21 @@ class Cell:
     planner: str | None
     loss: str
     lifetime_s: float
+    image_survival: float = 1.0  # per image; 1: imaging loses no atom
 
     def label(self) -> dict[str, Any]:
-        return {"problem": self.problem, "planner": self.planner, "loss": self.loss, "lifetime_s": self.lifetime_s}
+        return {
+            "problem": self.problem, "planner": self.planner, "loss": self.loss, "lifetime_s": self.lifetime_s,
+            "image_survival": self.image_survival,
+        }
 
 
 def cell_config(
     cell: Cell, *, loading: float = 0.6, max_cycles: int = 5, examples: Path = EXAMPLES
 ) -> SystemConfig:
-    """The example's configuration with the cell's planner, loss model and lifetime (validated as any config)."""
+    """The example's configuration with the cell's planner, loss model, lifetime and imaging survival, in replay
+    time (each host stage charged its modelled duration, so a shot's outcome and timing depend only on its seed,
+    not on how busy the machine running it is). Validated as any configuration."""
     if cell.problem not in PROBLEMS:
         raise ValueError(f"unknown problem {cell.problem!r}; choose from {', '.join(PROBLEMS)}")
     if cell.loss not in LOSS_MODELS:
@@ -85,7 +91,13 @@ def cell_config(
     base = load_config(examples / PROBLEMS[cell.problem]).model_dump(mode="json")
     survival = LOSS_MODELS[cell.loss]
     sim = base["sim"]
-    sim.update(loading_probability=loading, vacuum_lifetime_s=cell.lifetime_s, lossless=survival is None)
+    if not 0 < cell.image_survival <= 1:
+        raise ValueError(f"image survival must be in (0, 1] (got {cell.image_survival})")
+    sim.update(
+        loading_probability=loading, vacuum_lifetime_s=cell.lifetime_s, lossless=survival is None, time="replay"
+    )
+    # imaging heats atoms out at a rate while the light is on: survival per image = exp(-rate * exposure)
+    sim["imaging"]["loss_rate_hz"] = -math.log(cell.image_survival) / base["camera"]["exposure_s"]
     if survival is not None:
         sim.update(survival_transfer=survival[0], survival_step=survival[1])
     base["loop"]["max_cycles"] = max_cycles
@@ -248,14 +260,17 @@ def _pct(x: float) -> str:
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     """The rows as a markdown table (what docs/benchmarks.md quotes)."""
     head = (
-        "| problem | planner | loss (transfer/step) | lifetime s | shots | success % [95 % CI] | engine believed % "
+        "| problem | planner | loss (transfer/step) | lifetime s | image survival | shots | success % [95 % CI] | engine believed % "
         "| cycles mean / p90 | time to array ms median / p90 | vacuum bound % | lost per cycle: "
         + " / ".join(LOSS_CAUSES)
         + " |"
     )
-    lines = [head, "|" + "---|" * 11]
+    lines = [head, "|" + "---|" * 12]
     for r in rows:
-        label = f"| {r['problem']} | {r['planner'] or 'example'} | {r['loss']} | {r['lifetime_s']:g} "
+        label = (
+            f"| {r['problem']} | {r['planner'] or 'example'} | {r['loss']} | {r['lifetime_s']:g} "
+            f"| {r['image_survival']:g} "
+        )
         if "error" in r:
             lines.append(label + f"| - | refused: {r['error']} | | | | | |")
             continue
@@ -277,11 +292,12 @@ def _csv(text: str) -> list[str]:
 def _cmd(args: argparse.Namespace) -> int:
     planners: list[str | None] = [None if p == "example" else p for p in _csv(args.planners)]
     cells = [
-        Cell(problem=problem, planner=planner, loss=loss, lifetime_s=float(lifetime))
+        Cell(problem=problem, planner=planner, loss=loss, lifetime_s=float(lifetime), image_survival=float(image))
         for problem in _csv(args.problems)
         for planner in planners
         for loss in _csv(args.loss)
         for lifetime in _csv(args.lifetime)
+        for image in _csv(args.image_survival)
     ]
     results = run_cells(
         cells, shots=args.shots, seed=args.seed, chunk=args.chunk, loading=args.loading,
@@ -301,6 +317,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--planners", default="example", help="comma-separated planners; 'example': the example's own")
     p.add_argument("--loss", default="0.995/0.999", help=f"comma-separated, from {', '.join(LOSS_MODELS)}")
     p.add_argument("--lifetime", default="6000", help="comma-separated vacuum lifetimes in s (default 6000)")
+    p.add_argument("--image-survival", default="1", help="comma-separated survival per image (default 1: lossless)")
     p.add_argument("--shots", type=int, default=200, help="shots per cell (default 200)")
     p.add_argument("--seed", type=int, default=1, help="base seed: shot j of every cell is seeded from (seed, j)")
     p.add_argument("--chunk", type=int, default=20, help="shots per dask task (default 20)")

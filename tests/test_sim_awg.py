@@ -18,8 +18,8 @@ CFG = chain_config(N, awg={"upload_jitter_s": 0.0})
 SLOT_S = CFG.waveforms.slot_duration_s
 
 
-def make(cfg=CFG, atoms=None):
-    clock = SimClock()
+def make(cfg=CFG, atoms=None, time_mode="simulated"):
+    clock = SimClock(time_mode)
     world = World(cfg, clock=clock, lossless=True)
     if atoms is not None:
         world.set_occupancy(np.asarray(atoms, bool).reshape(1, -1))
@@ -44,19 +44,19 @@ def test_implements_the_protocol() -> None:
 
 
 def test_upload_time_model() -> None:
-    awg, _, clock = make()
+    """Replay time: the clock moves by the modelled device time only (no wall-clock host time to flake on)."""
+    awg, _, clock = make(time_mode="replay")
     t0 = clock.now_s()
     awg.write_segment(1, np.tile(HOLD, (4, 1)))
-    dt = clock.now_s() - t0
     expect = 4 * HOLD.nbytes / CFG.awg.upload_bytes_per_s
-    assert expect <= dt < expect + 5e-3
+    assert clock.now_s() - t0 == pytest.approx(expect, rel=1e-9)
     awg.upload_delay_s = 1e-3
     t0 = clock.now_s()
     awg.write_segment(2, HOLD)
-    assert clock.now_s() - t0 >= 1e-3
+    assert clock.now_s() - t0 == pytest.approx(HOLD.nbytes / CFG.awg.upload_bytes_per_s + 1e-3, rel=1e-9)
     t0 = clock.now_s()
     awg.write_step(0, StepInfo(segment=1, next_step=0))
-    assert clock.now_s() - t0 >= CFG.awg.step_write_s
+    assert clock.now_s() - t0 == pytest.approx(CFG.awg.step_write_s, rel=1e-9)
 
 
 def test_write_errors_name_the_problem() -> None:

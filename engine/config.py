@@ -20,6 +20,8 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from engine.card_rules import slot_length_problem
+
 __all__ = [
     "ArrayConfig",
     "AWGConfig",
@@ -409,6 +411,10 @@ class SystemConfig(_Model):
                 "waveforms: sample_rate_hz * slot_duration_s must be a whole number of samples "
                 f"(got {wf.sample_rate_hz * wf.slot_duration_s:g})"
             )
+        # every device, simulated or not, refuses what the card would refuse at its first upload
+        problem = slot_length_problem(wf.sample_rate_hz, wf.slot_duration_s, 1 if self.array.trap_source == "aod" else 2)
+        if problem is not None:
+            raise ValueError(problem)
         grid_hz = 1.0 / wf.slot_duration_s
         for axis in ("x_tones", "y_tones"):
             tones: ToneAxisConfig = getattr(self.array, axis)

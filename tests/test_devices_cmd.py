@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from drivers.factory import available_devices, open_devices
-from engine.config import DevicesConfig, SystemConfig, config_from_dict
+from engine.config import ConfigError, DevicesConfig, SystemConfig, config_from_dict
 from engine.devices import DeviceError
 from server import devices_cmd
 from tests.fake_activesilicon import FakePhxLibrary
@@ -42,7 +42,7 @@ def test_probing_opens_the_real_devices_through_their_vendor_software(tmp_path: 
     entries = by_key(available_devices(devices, spcm_module=spcm, andor_module=make_fake_andor(n_cameras=2),
                                        phx_library=FakePhxLibrary()))
     assert all(e["available"] for e in entries.values())
-    assert "M4i.6622-x8 (fake) s/n 12345 at /dev/spcm0: 4 channels, 4.0 GiB" in entries[("awg", "spectrum")]["detail"]
+    assert "M4i.6622-x8 s/n 12345 at /dev/spcm0: 4 channels, 4.0 GiB" in entries[("awg", "spectrum")]["detail"]
     assert not spcm.fake.cards["/dev/spcm0"].opened  # probed, then closed again
     assert "sees 2 camera(s)" in entries[("camera", "andor")]["detail"]
     assert "board 1 channel 1 opens" in entries[("frame_source", "activesilicon")]["detail"]
@@ -142,9 +142,9 @@ def test_when_the_camera_fails_the_opened_awg_is_closed_again() -> None:
     assert not spcm.fake.cards["/dev/spcm0"].opened
 
 
-def test_a_slot_length_the_card_cannot_play_is_refused_before_opening() -> None:
-    config = config_from_dict({"devices": {"awg": "spectrum"}, "waveforms": {"sample_rate_hz": 312e6}})
-    spcm = make_fake_spcm()
-    with pytest.raises(DeviceError, match=r"slot is 3120 samples .*multiples of 32.*3136"):
-        open_devices(config, spcm_module=spcm)
-    assert not [c for c in spcm.fake.log if c[0] == "open"]
+@pytest.mark.parametrize("awg", ["sim", "spectrum"])
+def test_a_slot_length_the_card_cannot_play_is_refused_when_the_configuration_is_applied(awg: str) -> None:
+    """625 MS/s x 10 us = 6250 samples: the card refuses it at the first upload, so every device set refuses
+    the configuration, the simulated one included (it would otherwise run what the lab cannot)."""
+    with pytest.raises(ConfigError, match=r"10 us x 625 MS/s = 6250 samples.*multiples of 32.*624 MS/s or 627\.2 MS/s"):
+        config_from_dict({"devices": {"awg": awg}, "waveforms": {"sample_rate_hz": 625e6}})

@@ -434,3 +434,4 @@ def test_the_streamers_uploads_and_pointer_updates_obey_the_card(passes_per_dma:
                 assert written[nxt] < i and uploaded[decode(card_log(awg)[written[nxt]][2])[0]] < written[nxt]
             written[step] = i
     assert (seen_failsafe > 0) == (passes_per_dma > 0)  # a card faster than the uploads pauses in failsafes
+    assert awg.staged_uploads <= 1  # at most the idle hold is copied: the streamer's buffers are page-aligned

@@ -4,6 +4,7 @@ missing."""
 
 from __future__ import annotations
 
+import ctypes
 import sys
 import threading
 import time
@@ -13,17 +14,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.activesilicon import PHX, ActiveSiliconFrameSource, load_library
+from drivers.activesilicon import DMA_TIMEOUT_MS, PHX, ActiveSiliconFrameSource, load_library
 from drivers.andor import LINUX_SDK_DIR, AndorCamera, FrameSource, status_name
 from engine.config import CameraConfig, DevicesConfig
 from engine.devices import Camera, DeviceError
-from tests.fake_activesilicon import FakePhxLibrary
-from tests.fake_andor import (
-    AC_SETFUNCTION_EMCCDGAIN,
-    DRV_SUCCESS,
-    make_fake_andor,
-    pattern,
-)
+from tests.fake_activesilicon import H, FakePhxLibrary
+from tests.fake_andor import AC_SETFUNCTION_EMCCDGAIN, DRV_SUCCESS, make_fake_andor, pattern
 
 
 def camera_config(**kw: Any) -> CameraConfig:
@@ -262,6 +258,44 @@ def test_grabber_frames_roi_and_arming_before_the_exposure(pcf: Path) -> None:
     assert ops[-6:] == ["START", "CHECK_AND_WAIT", "BUFFER_GET", "STOP", "BUFFER_RELEASE", "START"]
     cam.close()
     assert not phx.opened and not phx.created and phx.violations == [] and fake.shut_down
+
+
+@pytest.mark.parametrize("dst_alignment", [1, 256])
+def test_grabber_buffer_layout_is_set_so_a_roi_narrower_than_the_camera_file_is_not_sheared(
+        pcf: Path, dst_alignment: int) -> None:
+    """The camera file's destination buffer is 1024 pixels wide; the iXon sends a 100 x 12 ROI. The adapter
+    sets the buffer's format and line length (which the board may round up to its alignment) and copies
+    line by line when the lines are padded."""
+    phx = FakePhxLibrary(dst_alignment=dst_alignment)
+    cam, fake = andor(grabber=phx, pcf=pcf)
+    cam.configure(camera_config(roi_width_px=100, roi_height_px=12))
+    p = phx.params
+    assert p[H.PHX_DST_FORMAT] == H.PHX_DST_FORMAT_Y16 and p[H.PHX_BUF_DST_YLENGTH] == 12
+    assert p[H.PHX_BUF_DST_XLENGTH] == (200 if dst_alignment == 1 else 256)
+    assert p[H.PHX_TIMEOUT_DMA] == DMA_TIMEOUT_MS and p[H.PHX_ROI_DST_XOFFSET] == p[H.PHX_ROI_DST_YOFFSET] == 0
+    out = np.zeros(cam.frame_shape, dtype=np.uint16)
+    cam.trigger()
+    fake.external_trigger()
+    cam.read(out, timeout_s=1.0)
+    np.testing.assert_array_equal(out, pattern(1, (12, 100)))
+    cam.close()
+    assert phx.violations == []
+
+
+def test_the_fake_grabber_refuses_a_constant_or_an_argument_the_header_does_not_have(pcf: Path) -> None:
+    phx = FakePhxLibrary()
+    handle = ctypes.c_uint64(0)
+    assert phx.PHX_Create(ctypes.byref(handle), None) == H.PHX_OK and handle.value != 0
+    value = ctypes.c_uint32(1)
+    assert phx.PHX_ParameterSet(handle, ctypes.c_uint32(0xC0021234), ctypes.byref(value)) == H.PHX_ERROR_BAD_PARAM
+    assert "0xc0021234 is not a parameter of phx_api.h" in phx.violations[0]
+    with pytest.raises(ctypes.ArgumentError):  # etParam is an integer, never a double
+        phx.PHX_ParameterSet(handle, ctypes.c_double(1.0), ctypes.byref(value))
+    with pytest.raises(ctypes.ArgumentError):  # the value goes by pointer, not by value
+        phx.PHX_ParameterSet(handle, ctypes.c_uint32(H.PHX_ROI_XLENGTH), 3.5)
+    assert phx.PHX_StreamRead(handle, ctypes.c_uint32(H.PHX_START), None) == H.PHX_ERROR_BAD_HANDLE  # not open
+    assert PHX.BUF_DST_XLENGTH == H.PHX_BUF_DST_XLENGTH and PHX.DST_FORMAT_Y16 == H.PHX_DST_FORMAT_Y16
+    assert PHX.TIMEOUT_DMA == H.PHX_TIMEOUT_DMA
 
 
 def test_grabber_timeout_aborts_then_the_next_frame_arrives(pcf: Path) -> None:

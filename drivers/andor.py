@@ -211,8 +211,8 @@ class AndorCamera:
         self._ok(ret, "GetCameraHandle")
         self._ok(sdk.SetCurrentCamera(handle), "SetCurrentCamera")
         directory = initialize_dir(s.sdk_path)
-        self._ok(sdk.Initialize(directory), "Initialize",
-                 hint=f"the SDK's files were looked for in {directory!r}: check devices.andor.sdk_path and the camera's power")
+        self._ok(sdk.Initialize(directory), "Initialize", hint=(
+            f"the SDK's files were looked for in {directory!r}: check devices.andor.sdk_path and the camera's power"))
         self._sdk = sdk
         try:
             ret, xpix, ypix = sdk.GetDetector()

@@ -99,9 +99,9 @@ def import_spcm() -> ModuleType:
 class SpectrumAWG:
     """``SequenceAWG`` on a Spectrum M4i.66xx card (see the module docstring for the vendor rules it follows).
 
-    ``spcm_module`` replaces ``import spcm`` (tests inject a fake that records every call). ``open()`` is
-    called by ``configure()`` if it was not called before; the factory opens explicitly so that a missing
-    driver shows up when the devices are built, not at the first shot.
+    ``spcm_module`` replaces ``import spcm`` (the tests pass the real package loaded over a fake C library).
+    ``open()`` is called by ``configure()`` if it was not called before; the factory opens explicitly so that
+    a missing driver shows up when the devices are built, not at the first shot.
     """
 
     def __init__(self, settings: SpectrumSettings | None = None, *, spcm_module: ModuleType | None = None) -> None:

@@ -412,7 +412,8 @@ class SystemConfig(_Model):
                 f"(got {wf.sample_rate_hz * wf.slot_duration_s:g})"
             )
         # every device, simulated or not, refuses what the card would refuse at its first upload
-        problem = slot_length_problem(wf.sample_rate_hz, wf.slot_duration_s, 1 if self.array.trap_source == "aod" else 2)
+        n_channels = 1 if self.array.trap_source == "aod" else 2
+        problem = slot_length_problem(wf.sample_rate_hz, wf.slot_duration_s, n_channels)
         if problem is not None:
             raise ValueError(problem)
         grid_hz = 1.0 / wf.slot_duration_s

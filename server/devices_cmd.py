@@ -50,8 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     p.add_argument("action", nargs="?", choices=["list", "check"], default="list",
                    help="'list' (default): what is available; 'check': open, play the idle waveform, acquire frames")
-    p.add_argument("--config", help="YAML configuration whose 'devices' section is checked (default: built-in defaults)")
-    p.add_argument("--no-probe", action="store_true", help="list only: load the vendor software; do not open the devices")
+    p.add_argument("--config", help="YAML configuration (default: built-in defaults): its 'devices' section to "
+                   "list; for check, everything (waveforms, awg, camera) the sequence uses")
+    p.add_argument("--no-probe", action="store_true",
+                   help="list only: load the vendor software; do not open the devices")
     p.add_argument("--frames", type=int, default=5, help="check only: frames to acquire (default 5)")
     p.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
     p.set_defaults(func=_dispatch)
@@ -185,7 +187,8 @@ def _camera_sequence(config: SystemConfig, devices: DeviceSet, n_frames: int, ou
     camera, awg, cam = devices.camera, devices.awg, config.camera
     _step(out, "camera configured", lambda: camera.configure(cam),
           lambda _: f"frames of {camera.frame_shape[1]} x {camera.frame_shape[0]} px (ROI {cam.roi_width_px} x "
-                    f"{cam.roi_height_px}, binning {cam.binning[0]} x {cam.binning[1]}), exposure {cam.exposure_s * 1e3:g} ms",
+                    f"{cam.roi_height_px}, binning {cam.binning[0]} x {cam.binning[1]}), "
+                    f"exposure {cam.exposure_s * 1e3:g} ms",
           "check camera.roi_*/binning against the sensor and devices.andor.roi_offset_px")
     frame = np.zeros(camera.frame_shape, dtype=np.uint16)
     readouts: list[float] = []

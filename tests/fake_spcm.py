@@ -150,8 +150,15 @@ class FakeSpcmLibrary:
                                                int(length.value))
 
 
+_BYREF = type(ctypes.byref(ctypes.c_int()))
+_C_ARGUMENT = (type(None), int, bytes, ctypes._SimpleCData, ctypes.Structure, ctypes.Union, ctypes.Array,
+               ctypes._Pointer, _BYREF)
+
+
 class _CFunction:
-    """A C function as ``spcm_core`` sees it: callable, and it sets ``argtype``/``restype`` on it."""
+    """A C function as ``spcm_core`` sees it: callable, and it sets ``argtype``/``restype`` on it (spcm_core
+    writes ``argtype``, which ctypes ignores, so arguments go through ctypes' default conversion: what that
+    conversion refuses, a float or a numpy scalar, is refused here too)."""
 
     def __init__(self, name: str, impl: Callable[..., Any]) -> None:
         self.__name__ = name
@@ -160,6 +167,10 @@ class _CFunction:
         self.restype: Any = None
 
     def __call__(self, *args: Any) -> Any:
+        for i, arg in enumerate(args, 1):
+            if not isinstance(arg, _C_ARGUMENT):
+                raise ctypes.ArgumentError(f"argument {i}: TypeError: Don't know how to convert parameter {i} "
+                                           f"({type(arg).__name__}) in {self.__name__}")
         return self._impl(*args)
 
 
@@ -233,9 +244,8 @@ _REGISTER_NAMES = {getattr(C, n): n for n in [*_setup_register_names(), "SPC_M2C
 def decode(word: int) -> tuple[int, int, int, int]:
     """``(segment, next_step, loops, flags)`` from a step word, with the manual's masks."""
     fields = card_rules.decode_step(word)
-    flags = (card_rules.SPCSEQ_ENDLOOPONTRIG if fields["on_trigger"] else 0) | (card_rules.SPCSEQ_END if fields["end"] else 0)
-    flags |= ((word & ((1 << 64) - 1)) >> 32) & ~(card_rules.SPCSEQ_LOOPMASK | card_rules.SPCSEQ_ENDLOOPONTRIG | card_rules.SPCSEQ_END)
-    return int(fields["segment"]), int(fields["next_step"]), int(fields["loops"]), flags
+    high = (word & ((1 << 64) - 1)) >> 32
+    return int(fields["segment"]), int(fields["next_step"]), int(fields["loops"]), high & ~card_rules.SPCSEQ_LOOPMASK
 
 
 @dataclass
@@ -405,7 +415,8 @@ class CardState:
 
     def _dma(self) -> int:
         if self.dma is None:
-            return self.refuse(C.ERR_SEQUENCE, C.SPC_M2CMD, C.M2CMD_DATA_STARTDMA, "STARTDMA without a DefTransfer buffer")
+            return self.refuse(C.ERR_SEQUENCE, C.SPC_M2CMD, C.M2CMD_DATA_STARTDMA,
+                               "STARTDMA without a DefTransfer buffer")
         ptr, length = self.dma
         self.dma = None
         seg = self.registers.get(C.SPC_SEQMODE_WRITESEGMENT)
@@ -425,15 +436,16 @@ class CardState:
         return C.ERR_OK
 
     def _write_step(self, index: int, word: int) -> int:
+        reg = C.SPC_SEQMODE_STEPMEM0 + index
         if index >= self.max_steps:
-            return self.refuse(C.ERR_VALUE, C.SPC_SEQMODE_STEPMEM0 + index, word, f"step {index} beyond the step memory")
+            return self.refuse(C.ERR_VALUE, reg, word, f"step {index} beyond the step memory")
         seg, nxt, loops, flags = decode(word)
         if flags & ~(card_rules.SPCSEQ_ENDLOOPONTRIG | card_rules.SPCSEQ_END):
-            return self.refuse(C.ERR_VALUE, C.SPC_SEQMODE_STEPMEM0 + index, word, f"step {index}: unknown flags {flags:#x}")
+            return self.refuse(C.ERR_VALUE, reg, word, f"step {index}: unknown flags {flags:#x}")
         if loops < 1:
-            return self.refuse(C.ERR_VALUE, C.SPC_SEQMODE_STEPMEM0 + index, word, f"step {index}: loops {loops} < 1")
+            return self.refuse(C.ERR_VALUE, reg, word, f"step {index}: loops {loops} < 1")
         if nxt >= self.max_steps:
-            return self.refuse(C.ERR_VALUE, C.SPC_SEQMODE_STEPMEM0 + index, word, f"step {index}: next {nxt} beyond the step memory")
+            return self.refuse(C.ERR_VALUE, reg, word, f"step {index}: next {nxt} beyond the step memory")
         self.steps[index] = word
         self.step_written_with_size[index] = len(self.segments[seg]) if seg in self.segments else 0
         return C.ERR_OK

@@ -1,9 +1,11 @@
-"""The Spectrum adapter against a fake ``spcm`` that records every call and enforces the manual's sequence-mode
-rules (see ``tests/fake_spcm.py``): step words, the order of uploads and pointer updates, the card setup,
-the X-line pulses, and what opening says when the package or its driver is missing."""
+"""The Spectrum adapter through the real ``spcm`` package over a fake of Spectrum's C library, a register-level
+card that records every call and enforces the manual's sequence-mode rules (see ``tests/fake_spcm.py``):
+opening, step words, the order of uploads and pointer updates, the card setup, DMA alignment, the X-line
+pulses, and what opening says when the package or its driver is missing."""
 
 from __future__ import annotations
 
+import ctypes
 import sys
 from typing import Any
 
@@ -133,6 +135,8 @@ def test_the_fake_card_refuses_what_the_manual_forbids_through_spcm_itself() -> 
     with pytest.raises(mod.SpcmException, match="SPC_SAMPLERATE written while the card runs"):
         card.set_i(C.SPC_SAMPLERATE, 625_000_000)
     assert len(state.violations) == 3
+    with pytest.raises(ctypes.ArgumentError):  # what ctypes cannot pass to the C function, the fake refuses
+        mod.spcm_dwDefTransfer_i64(card.handle(), C.SPCM_BUF_DATA, C.SPCM_DIR_PCTOCARD, 0, 4096.0, 0, 64)
     card.close()
 
 

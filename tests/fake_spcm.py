@@ -184,14 +184,21 @@ def _unmodelled(name: str) -> Callable[..., Any]:
 LIBRARY = FakeSpcmLibrary()
 
 
+def _forget_spcm() -> None:
+    for name in [m for m in sys.modules if m == "spcm" or m.startswith(("spcm.", "spcm_core"))]:
+        del sys.modules[name]
+
+
 def load_spcm() -> types.ModuleType:
-    """The real ``spcm`` package, imported over ``LIBRARY`` once per process (later calls return it, even
-    while a test hides ``spcm`` from ``sys.modules`` to play a machine without the package or driver)."""
+    """The real ``spcm`` package, imported over ``LIBRARY`` once per process.
+
+    The module is handed only to those who ask for it (``spcm_module=``): it is taken out of ``sys.modules``
+    again, so a plain ``import spcm`` elsewhere in the test session still meets the machine as it is (no
+    Spectrum driver here) instead of the fake card."""
     global _LOADED
     if _LOADED is not None:
         return _LOADED
-    for name in [m for m in sys.modules if m == "spcm" or m.startswith(("spcm.", "spcm_core"))]:
-        del sys.modules[name]
+    _forget_spcm()
     loader = ctypes.cdll
     real_load = loader.LoadLibrary
 
@@ -203,6 +210,7 @@ def load_spcm() -> types.ModuleType:
         _LOADED = importlib.import_module("spcm")
     finally:
         del loader.LoadLibrary  # the instance attribute goes; the class's method is back
+        _forget_spcm()
     return _LOADED
 
 

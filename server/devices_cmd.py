@@ -24,6 +24,7 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -135,8 +136,9 @@ def _awg_sequence(config: SystemConfig, devices: DeviceSet, out: list[CheckResul
 
     lean = config.model_copy(update={"waveforms": config.waveforms.model_copy(update={"table_max_bytes": 0})})
     bank = WaveformBank(lean, prefix=False)  # only the hold waveform is needed: no move tables
-    hold = page_aligned_zeros(bank.hold().shape, np.int16)
-    hold[:] = bank.hold()
+    idle = bank.hold()
+    hold = page_aligned_zeros(idle.shape, np.int16)  # DMA-ready, as the streamer's buffers
+    hold[:] = idle
     limits = _idle_within_limits(config, hold)
     out.append(limits)
     if not limits.passed:
@@ -228,7 +230,8 @@ def _camera_sequence(config: SystemConfig, devices: DeviceSet, n_frames: int, ou
                                f"{type(camera).__name__}: no cooler to report, EM gain x{cam.em_gain:g}"))
 
 
-def _step(out: list[CheckResult], name: str, action: Any, describe: Any, fix: str) -> None:
+def _step(out: list[CheckResult], name: str, action: Callable[[], Any], describe: Callable[[Any], str],
+          fix: str) -> None:
     """Run ``action``; record a pass with ``describe(result)`` or a failure with the device's message and
     ``fix``; a failure ends the sequence (what follows depends on it)."""
     try:

@@ -273,11 +273,14 @@ class AndorCamera:
                 sdk.ShutDown()
 
     def status(self) -> dict[str, Any]:
-        """Temperature and its status (for ``llrs devices`` and the dashboard)."""
+        """Temperature and its status, and the EM gain the camera reports (for ``llrs devices check`` and
+        the dashboard)."""
         if self._sdk is None:
             return {"open": False}
         ret, temp = self._sdk.GetTemperature()
-        return {"open": True, "temperature_c": temp, "temperature_status": status_name(ret), **self.info}
+        gain_ret, gain = self._sdk.GetEMCCDGain()
+        return {"open": True, "temperature_c": temp, "temperature_status": status_name(ret),
+                "em_gain": gain if gain_ret == DRV_SUCCESS else None, **self.info}
 
     # --- Camera protocol -------------------------------------------------------------------------------
 

@@ -222,7 +222,8 @@ def _camera_sequence(config: SystemConfig, devices: DeviceSet, n_frames: int, ou
         temp_ok = st.get("temperature_status") == "DRV_TEMP_STABILIZED"
         out.append(CheckResult(
             "camera temperature and gain", temp_ok,
-            f"{st.get('temperature_c')} C ({st.get('temperature_status')}), EM gain x{cam.em_gain:g}",
+            f"{st.get('temperature_c')} C ({st.get('temperature_status')}), EM gain {st.get('em_gain')} "
+            f"(camera.em_gain {cam.em_gain:g})",
             "" if temp_ok else "wait for the cooler (devices.andor.wait_for_temperature_s) before taking data",
         ))
     else:

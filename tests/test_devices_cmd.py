@@ -204,6 +204,7 @@ def test_the_check_plays_only_the_idle_waveform_on_the_card(tmp_path: Path) -> N
     assert not card.running
     temperature = results["camera temperature and gain"]
     assert temperature.passed and "DRV_TEMP_STABILIZED" in temperature.detail
+    assert "EM gain 300 (camera.em_gain 300)" in temperature.detail  # read back from the camera
     # the fake camera makes frames instantly: its readout cannot match the model, and the check says so
     readout = results["readout time vs model"]
     assert not readout.passed and "vertical_shift_s" in readout.fix

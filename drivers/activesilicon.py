@@ -8,14 +8,18 @@ The calls and their order (Active Silicon's ``phx_api.h``; the reference system 
 ``PHX_Create`` (with the library's default error handler), ``PHX_ParameterSet`` of ``PHX_CONFIG_FILE`` (the
 camera's .pcf file), ``PHX_BOARD_NUMBER``, ``PHX_CHANNEL_NUMBER``, ``PHX_CONFIG_MODE``, then ``PHX_Open``;
 per configuration the camera's active region and the ROI (``PHX_CAM_ACTIVE_X/YLENGTH``,
-``PHX_ROI_SRC_X/YOFFSET``, ``PHX_ROI_X/YLENGTH``); per frame ``PHX_StreamRead(PHX_START)`` (armed before the
+``PHX_ROI_SRC_X/YOFFSET``, ``PHX_ROI_X/YLENGTH``) and the destination buffer's layout: 16-bit pixels
+(``PHX_DST_FORMAT_Y16``), one ROI line per buffer line (``PHX_BUF_DST_XLENGTH`` in bytes,
+``PHX_BUF_DST_YLENGTH`` in lines, read back because the board may round the line length up) and the DMA
+timeout (``PHX_TIMEOUT_DMA``). Without them the buffer keeps the camera file's layout, typically the full
+sensor width, and a ROI copied as contiguous lines comes out sheared. Per frame ``PHX_StreamRead(PHX_START)`` (armed before the
 exposure is triggered), ``PHX_CHECK_AND_WAIT`` (blocks until the frame event), ``PHX_BUFFER_GET``, a copy out
 of the grabber's buffer, ``PHX_STOP`` and ``PHX_BUFFER_RELEASE``, then ``PHX_START`` again to arm for the next
 frame. ``PHX_CHECK_AND_WAIT`` has no timeout of its own: a watchdog thread aborts the stream
 (``PHX_ABORT``) at the deadline, which makes the wait return; the next read re-arms the stream.
 
 Parameter identifiers are computed from the header's scheme (function group in the top bits, parameter number
-``<< 8``), so no header is needed at run time. This adapter has been exercised only against the fake in
+``<< 8``), so no header is needed at run time; the functions get the header's prototypes (``PROTOTYPES``). This adapter has been exercised only against the fake in
 ``tests/fake_activesilicon.py``; check it on the lab PC with ``llrs devices`` and a test shot.
 """
 
@@ -35,7 +39,7 @@ import numpy as np
 from engine.config import DevicesConfig
 from engine.devices import DeviceError
 
-__all__ = ["ActiveSiliconFrameSource", "PHX", "StImageBuff", "library_candidates", "load_library"]
+__all__ = ["ActiveSiliconFrameSource", "PHX", "PROTOTYPES", "StImageBuff", "library_candidates", "load_library"]
 
 ActiveSiliconSettings = DevicesConfig.ActiveSiliconSettings
 
@@ -60,10 +64,16 @@ class PHX:
     CAM_ACTIVE_YLENGTH = _SETANDGET | (11 << 8)
     CAM_ACTIVE_XOFFSET = _SETANDGET | (12 << 8)
     CAM_ACTIVE_YOFFSET = _SETANDGET | (13 << 8)
+    DST_FORMAT = _SETANDGET | (38 << 8)  # PHX_BUS_FORMAT
+    TIMEOUT_DMA = _SETANDGET | (76 << 8)  # milliseconds
+    ROI_DST_XOFFSET = _SETANDGET | (87 << 8)
+    ROI_DST_YOFFSET = _SETANDGET | (88 << 8)
     ROI_SRC_XOFFSET = _SETANDGET | (89 << 8)
     ROI_SRC_YOFFSET = _SETANDGET | (90 << 8)
     ROI_XLENGTH = _SETANDGET | (91 << 8)
     ROI_YLENGTH = _SETANDGET | (92 << 8)
+    BUF_DST_XLENGTH = _SETANDGET | (93 << 8)  # bytes per destination line
+    BUF_DST_YLENGTH = _SETANDGET | (94 << 8)  # destination lines
     ACQ_BLOCKING = _SETANDGET | (147 << 8)
     CONFIG_FILE = _PRE_OPEN | (1 << 8)
     BOARD_NUMBER = _PRE_OPEN | (3 << 8)
@@ -71,6 +81,7 @@ class PHX:
     CONFIG_MODE = _PRE_OPEN | (5 << 8)
     # parameter values
     CONFIG_NORMAL = _CAMERACONFIG_LOAD | 0x0000
+    DST_FORMAT_Y16 = DST_FORMAT + 2  # PHX_BUS_FORMAT_MONO16: 16-bit monochrome pixels
 
     @staticmethod
     def board(n: int) -> int:
@@ -95,6 +106,22 @@ class StImageBuff(ctypes.Structure):
     """``stImageBuff``: where the grabber put a frame."""
 
     _fields_ = [("pvAddress", ctypes.c_void_p), ("pvContext", ctypes.c_void_p)]
+
+
+# phx_api.h's prototypes: (argument types), every function returns etStat. tHandle is passed as a 64-bit
+# integer: the library's handle fits it by value and through a zeroed 64-bit variable on x86-64.
+PROTOTYPES: dict[str, list[Any]] = {
+    "PHX_Create": [ctypes.POINTER(ctypes.c_uint64), ctypes.c_void_p],
+    "PHX_Open": [ctypes.c_uint64],
+    "PHX_Close": [ctypes.POINTER(ctypes.c_uint64)],
+    "PHX_Destroy": [ctypes.POINTER(ctypes.c_uint64)],
+    "PHX_ParameterSet": [ctypes.c_uint64, ctypes.c_uint32, ctypes.c_void_p],
+    "PHX_ParameterGet": [ctypes.c_uint64, ctypes.c_uint32, ctypes.c_void_p],
+    "PHX_StreamRead": [ctypes.c_uint64, ctypes.c_uint32, ctypes.c_void_p],
+}
+#: PHX_TIMEOUT_DMA: a frame of at most 1024 x 1024 x 2 B crosses PCIe in milliseconds, so a second only
+#: catches a transfer that is stuck (the frame timeout itself is camera.timeout_s, see read()).
+DMA_TIMEOUT_MS = 1000
 
 
 INSTALL_SDK = (
@@ -133,9 +160,9 @@ def load_library(path: str | None = None) -> Any:
         except OSError as err:
             errors.append(f"{name}: {err}")
             continue
-        for fn in ("PHX_Create", "PHX_Open", "PHX_Close", "PHX_Destroy", "PHX_ParameterSet", "PHX_ParameterGet",
-                   "PHX_StreamRead"):
+        for fn, argtypes in PROTOTYPES.items():
             getattr(lib, fn).restype = ctypes.c_int
+            getattr(lib, fn).argtypes = argtypes
         return lib
     raise DeviceError(
         f"Active Silicon: the PHX library was not found (tried {', '.join(tried)}); {INSTALL_SDK}"
@@ -208,6 +235,8 @@ class ActiveSiliconFrameSource:
         self._streaming = False
         self._shape = (0, 0)
         self._nbytes = 0
+        self._line_bytes = 0  # bytes of one ROI line
+        self._stride = 0  # bytes of one destination buffer line (the board may round it up)
         self._buf = StImageBuff()
         self._buf_ref = ctypes.byref(self._buf)
         self._event = ctypes.c_uint32(0)
@@ -289,9 +318,23 @@ class ActiveSiliconFrameSource:
         self._set_u32(PHX.ROI_SRC_YOFFSET, 0)
         self._set_u32(PHX.ROI_XLENGTH, width)
         self._set_u32(PHX.ROI_YLENGTH, height)
+        self._set_u32(PHX.ROI_DST_XOFFSET, 0)
+        self._set_u32(PHX.ROI_DST_YOFFSET, 0)
+        self._set_u32(PHX.DST_FORMAT, PHX.DST_FORMAT_Y16)
+        self._set_u32(PHX.BUF_DST_XLENGTH, width * 2)
+        self._set_u32(PHX.BUF_DST_YLENGTH, height)
+        self._set_u32(PHX.TIMEOUT_DMA, DMA_TIMEOUT_MS)
         self._set_u32(PHX.ACQ_BLOCKING, PHX.ENABLE)
         self._set_u32(PHX.ACQ_CONTINUOUS, PHX.ENABLE)
+        stride = self._get_u32(PHX.BUF_DST_XLENGTH, "PHX_BUF_DST_XLENGTH")
+        if stride < width * 2:
+            raise DeviceError(
+                f"Active Silicon: the grabber's buffer line is {stride} B, shorter than a {width}-pixel ROI line "
+                f"({width * 2} B); check the camera file (devices.activesilicon.config_file)"
+            )
         self._shape = (height, width)
+        self._line_bytes = width * 2
+        self._stride = stride
         self._nbytes = height * width * 2
         self._out = None
 
@@ -326,7 +369,7 @@ class ActiveSiliconFrameSource:
         self._stream("BUFFER_GET", self._buf_ref)
         if not self._buf.pvAddress:
             raise DeviceError("Active Silicon: the grabber returned an empty buffer")
-        ctypes.memmove(self._out_ptr, self._buf.pvAddress, self._nbytes)
+        self._copy_out(self._buf.pvAddress)
         self._stream("STOP")
         self._stream("BUFFER_RELEASE", self._buf_ref)
         self._streaming = False
@@ -341,6 +384,15 @@ class ActiveSiliconFrameSource:
             self._stream("ABORT")
 
     # --- internals -------------------------------------------------------------------------------------
+
+    def _copy_out(self, address: int) -> None:
+        """The ROI from the grabber's buffer into ``out``: one copy when the lines are packed, else line by
+        line, skipping the padding the board adds at the end of each line."""
+        if self._stride == self._line_bytes:
+            ctypes.memmove(self._out_ptr, address, self._nbytes)
+            return
+        for row in range(self._shape[0]):
+            ctypes.memmove(self._out_ptr + row * self._line_bytes, address + row * self._stride, self._line_bytes)
 
     def _abort_from_watchdog(self) -> None:
         self._lib.PHX_StreamRead(self._handle, self._acq["ABORT"], None)
@@ -357,6 +409,12 @@ class ActiveSiliconFrameSource:
         v = ctypes.c_uint32(value)
         self._check(self._lib.PHX_ParameterSet(self._handle, ctypes.c_uint32(param), ctypes.byref(v)),
                     f"PHX_ParameterSet({param:#x} = {value:#x})")
+
+    def _get_u32(self, param: int, name: str) -> int:
+        v = ctypes.c_uint32(0)
+        self._check(self._lib.PHX_ParameterGet(self._handle, ctypes.c_uint32(param), ctypes.byref(v)),
+                    f"PHX_ParameterGet({name})")
+        return int(v.value)
 
     @staticmethod
     def _check(ret: int, what: str, *, hint: str = "") -> None:

@@ -18,6 +18,16 @@ Frames reach the engine one of two ways:
 - straight from the SDK: after a trigger, wait until the SDK's count of acquired images goes up
   (``GetTotalNumberImagesAcquired`` / ``WaitForAcquisitionTimeOut``), then copy ``GetMostRecentImage16``.
 
+Capabilities: EM advanced mode (gains above x300), Camera Link output and isolated crop mode are optional
+features; the adapter reads ``GetCapabilities`` at open and uses a feature only where the camera has it (a
+camera without one answers ``DRV_NOT_AVAILABLE`` / ``DRV_NOT_SUPPORTED``). The EM gain range depends on the
+gain mode *and* on ``SetEMAdvanced``, so both are set before the range is read. Crop mode, once on, stays on
+in the camera until switched off, so it is switched off explicitly when not wanted.
+
+``Initialize`` is given the directory holding the SDK's detector files: ``devices.andor.sdk_path``, or, when
+that is empty, ``/usr/local/etc/andor`` on Linux (where Andor's installer puts them) and the SDK's own
+default elsewhere.
+
 Triggering: the engine pulses the AWG's camera line and then calls ``trigger()``. In external mode that
 pulse starts the exposure and ``trigger()`` only notes the time and the image count; in software mode
 ``trigger()`` sends ``SendSoftwareTrigger``. Note (SDK2 manual): with frame transfer *and* external trigger
@@ -28,6 +38,7 @@ if each image must hold only the light after its own trigger.
 from __future__ import annotations
 
 import importlib
+import sys
 import time
 from collections.abc import Callable
 from types import ModuleType
@@ -56,8 +67,16 @@ _NAMES = {
     20002: "DRV_SUCCESS", 20024: "DRV_NO_NEW_DATA", 20034: "DRV_TEMP_OFF", 20035: "DRV_TEMP_NOT_STABILIZED",
     20036: "DRV_TEMP_STABILIZED", 20037: "DRV_TEMP_NOT_REACHED", 20040: "DRV_TEMP_DRIFT", 20066: "DRV_P1INVALID",
     20067: "DRV_P2INVALID", 20068: "DRV_P3INVALID", 20069: "DRV_P4INVALID", 20072: "DRV_ACQUIRING",
-    20073: "DRV_IDLE", 20075: "DRV_NOT_INITIALIZED", 20013: "DRV_ERROR_ACK", 20992: "DRV_NOT_AVAILABLE",
+    20073: "DRV_IDLE", 20075: "DRV_NOT_INITIALIZED", 20076: "DRV_P5INVALID", 20077: "DRV_P6INVALID",
+    20078: "DRV_INVALID_MODE", 20083: "DRV_P7INVALID", 20013: "DRV_ERROR_ACK", 20990: "DRV_ERROR_NOCAMERA",
+    20991: "DRV_NOT_SUPPORTED", 20992: "DRV_NOT_AVAILABLE",
 }
+# GetCapabilities bits (atmcd.h): the optional features the adapter uses
+AC_SETFUNCTION_CROPMODE = 0x0400
+AC_SETFUNCTION_EMADVANCED = 0x8000
+AC_FEATURES_CAMERALINK = 0x8000000
+EM_GAIN_CAPABILITY = {"dac255": 1, "dac4095": 2, "linear": 4, "real": 8}  # ulEMGainCapability bit per mode
+LINUX_SDK_DIR = "/usr/local/etc/andor"  # where Andor's Linux installer puts the detector files
 READ_MODE_IMAGE = 4
 ACQ_RUN_TILL_ABORT = 5
 AMP_EMCCD = 0
@@ -74,6 +93,13 @@ INSTALL_SDK = (
 
 def status_name(code: int) -> str:
     return _NAMES.get(int(code), str(code))
+
+
+def initialize_dir(sdk_path: str) -> str:
+    """The directory ``Initialize`` gets: the configured one, else the platform's install location."""
+    if sdk_path:
+        return sdk_path
+    return LINUX_SDK_DIR if sys.platform.startswith("linux") else ""
 
 
 @runtime_checkable
@@ -152,6 +178,9 @@ class AndorCamera:
         self._out: np.ndarray | None = None
         self._out_flat: np.ndarray | None = None
         self._trigger_mode = TRIGGER_MODES[self.settings.trigger]
+        self._set_functions = 0
+        self._features = 0
+        self._em_gain_capability = 0
         self.info: dict[str, Any] = {}
 
     # --- life cycle ------------------------------------------------------------------------------------
@@ -181,7 +210,9 @@ class AndorCamera:
         ret, handle = sdk.GetCameraHandle(s.index)
         self._ok(ret, "GetCameraHandle")
         self._ok(sdk.SetCurrentCamera(handle), "SetCurrentCamera")
-        self._ok(sdk.Initialize(s.sdk_path), "Initialize", hint="check devices.andor.sdk_path and the camera's power")
+        directory = initialize_dir(s.sdk_path)
+        self._ok(sdk.Initialize(directory), "Initialize", hint=(
+            f"the SDK's files were looked for in {directory!r}: check devices.andor.sdk_path and the camera's power"))
         self._sdk = sdk
         try:
             ret, xpix, ypix = sdk.GetDetector()
@@ -189,7 +220,17 @@ class AndorCamera:
             self._detector = (int(xpix), int(ypix))
             ret, serial = sdk.GetCameraSerialNumber()
             self._ok(ret, "GetCameraSerialNumber")
+            ret, caps = sdk.GetCapabilities()
+            self._ok(ret, "GetCapabilities")
+            self._set_functions = int(caps.ulSetFunctions)
+            self._features = int(caps.ulFeatures)
+            self._em_gain_capability = int(caps.ulEMGainCapability)
             self.info = {"serial": int(serial), "detector": self._detector}
+            if self.frame_source is not None and not self._features & AC_FEATURES_CAMERALINK:
+                raise DeviceError(
+                    "Andor camera: this camera has no Camera Link output (GetCapabilities), so frames cannot come "
+                    "through the grabber; set devices.frame_source: andor"
+                )
             if s.cooler:
                 self._ok(sdk.SetTemperature(s.temperature_c), "SetTemperature",
                          hint="devices.andor.temperature_c is outside the camera's range")
@@ -232,11 +273,14 @@ class AndorCamera:
                 sdk.ShutDown()
 
     def status(self) -> dict[str, Any]:
-        """Temperature and its status (for ``llrs devices`` and the dashboard)."""
+        """Temperature and its status, and the EM gain the camera reports (for ``llrs devices check`` and
+        the dashboard)."""
         if self._sdk is None:
             return {"open": False}
         ret, temp = self._sdk.GetTemperature()
-        return {"open": True, "temperature_c": temp, "temperature_status": status_name(ret), **self.info}
+        gain_ret, gain = self._sdk.GetEMCCDGain()
+        return {"open": True, "temperature_c": temp, "temperature_status": status_name(ret),
+                "em_gain": gain if gain_ret == DRV_SUCCESS else None, **self.info}
 
     # --- Camera protocol -------------------------------------------------------------------------------
 
@@ -277,22 +321,37 @@ class AndorCamera:
         ok(sdk.SetVSSpeed(vs_index), "SetVSSpeed", hint="devices.andor.vs_speed_index")
         ok(sdk.SetVSAmplitude(s.vs_amplitude), "SetVSAmplitude", hint="devices.andor.vs_amplitude")
         ok(sdk.SetPreAmpGain(s.preamp_gain_index), "SetPreAmpGain", hint="devices.andor.preamp_gain_index")
+        if not self._em_gain_capability & EM_GAIN_CAPABILITY[s.em_gain_mode]:
+            modes = [m for m, bit in EM_GAIN_CAPABILITY.items() if self._em_gain_capability & bit]
+            raise DeviceError(
+                f"Andor camera: devices.andor.em_gain_mode '{s.em_gain_mode}' is not one this camera has "
+                f"(GetCapabilities); use one of {modes}"
+            )
         ok(sdk.SetEMGainMode(EM_GAIN_MODES[s.em_gain_mode]), "SetEMGainMode")
+        gain = int(round(config.em_gain))
+        advanced = bool(self._set_functions & AC_SETFUNCTION_EMADVANCED)
+        if advanced:  # before the range is read: the range depends on it
+            ok(sdk.SetEMAdvanced(1 if gain > 300 else 0), "SetEMAdvanced")
         ret, lo, hi = sdk.GetEMGainRange()
         ok(ret, "GetEMGainRange")
-        gain = int(round(config.em_gain))
         if not lo <= gain <= hi:
+            why = "" if advanced or gain <= 300 else " (gains above 300 need EM advanced mode, which this camera lacks)"
             raise DeviceError(
                 f"Andor camera: camera.em_gain = {config.em_gain:g} is outside the camera's range {lo}..{hi} "
-                f"in EM gain mode '{s.em_gain_mode}'"
+                f"in EM gain mode '{s.em_gain_mode}'{why}"
             )
-        ok(sdk.SetEMAdvanced(1 if gain > 300 else 0), "SetEMAdvanced")
         ok(sdk.SetEMCCDGain(gain), "SetEMCCDGain")
         ok(sdk.SetBaselineClamp(1 if s.baseline_clamp else 0), "SetBaselineClamp")
-        ok(sdk.SetCameraLinkMode(1 if self.frame_source is not None else 0), "SetCameraLinkMode")
+        if self._features & AC_FEATURES_CAMERALINK:
+            ok(sdk.SetCameraLinkMode(1 if self.frame_source is not None else 0), "SetCameraLinkMode")
+        crop_capable = bool(self._set_functions & AC_SETFUNCTION_CROPMODE)
+        if s.crop_mode and not crop_capable:
+            raise DeviceError("Andor camera: this camera has no isolated crop mode (GetCapabilities); set "
+                              "devices.andor.crop_mode: false")
+        if crop_capable:  # on, or explicitly off: a crop mode left on by an earlier run would persist
+            ok(sdk.SetIsolatedCropModeEx(1 if s.crop_mode else 0, h * by, w * bx, by, bx, x0 + 1, y0 + 1),
+               "SetIsolatedCropModeEx", hint="crop mode needs frame transfer and a ROI the camera supports")
         if s.crop_mode:
-            ok(sdk.SetIsolatedCropModeEx(1, h * by, w * bx, by, bx, x0 + 1, y0 + 1), "SetIsolatedCropModeEx",
-               hint="crop mode needs frame transfer and a ROI the camera supports")
             ok(sdk.SetImage(bx, by, 1, w * bx, 1, h * by), "SetImage")
         else:
             ok(sdk.SetImage(bx, by, x0 + 1, x0 + w * bx, y0 + 1, y0 + h * by), "SetImage")
@@ -379,7 +438,8 @@ class AndorCamera:
         ret, image = sdk.GetMostRecentImage16(self._n_pixels)
         if ret != DRV_SUCCESS:
             self._ok(ret, "GetMostRecentImage16")
-        np.copyto(self._out_flat, image, casting="unsafe")  # the wrapper's array; our buffer is preallocated
+        # the wrapper returns int16 (it allocates c_short); the camera's counts are unsigned 16-bit: same bits
+        np.copyto(self._out_flat, image.view(np.uint16))
 
     @staticmethod
     def _ok(ret: int, call: str, *, hint: str = "") -> None:

@@ -25,9 +25,6 @@ if TYPE_CHECKING:
 
 __all__ = ["HostClock", "available_devices", "open_devices"]
 
-SEGMENT_ALIGN = 32  # the Spectrum card's segment-length step (samples per channel)
-
-
 class HostClock:
     """Wall time on hardware: the host's monotonic high-resolution clock."""
 
@@ -45,17 +42,6 @@ class _HardwareDeviceSet(DeviceSet):
             closer = getattr(self.awg, "close", None)
             if closer is not None:
                 closer()
-
-
-def _check_spectrum_layout(config: SystemConfig) -> None:
-    """The card plays segments in steps of 32 samples; the engine writes segments of whole waveform slots."""
-    n = config.waveforms.slot_samples
-    if n % SEGMENT_ALIGN:
-        raise DeviceError(
-            f"Spectrum AWG: a waveform slot is {n} samples (waveforms.sample_rate_hz * slot_duration_s) but the card "
-            f"needs segment lengths in multiples of {SEGMENT_ALIGN}; choose a slot of e.g. "
-            f"{(n // SEGMENT_ALIGN + 1) * SEGMENT_ALIGN} samples"
-        )
 
 
 def open_devices(
@@ -87,7 +73,6 @@ def open_devices(
         if d.awg == "spectrum":
             from drivers.spectrum import SpectrumAWG
 
-            _check_spectrum_layout(config)
             spectrum = SpectrumAWG(d.spectrum, spcm_module=spcm_module)
             spectrum.open()
             opened.append(spectrum)

@@ -31,8 +31,13 @@ sequences or step parameters during runtime" / "Changing data patterns during ru
 - "Remember to update the sequence step entries if the segment length has changed, so that the driver can
   re-calculate the internal start-addresses": after an upload that changes a segment's length, every step
   that plays that segment is rewritten (from a shadow copy of the step words).
-- Segment length (16-bit cards): a multiple of 32 samples per channel, at least 384 / channels, at most
-  memory / (2 bytes * channels * MAXSEGMENTS).
+- Segment length, step-word fields, partition and DMA alignment: ``engine/card_rules.py`` (one statement
+  of the card's rules, shared with the simulated AWG and the tests' fake card).
+- DMA reads host memory in place from page-aligned buffers (Spectrum's examples allocate 4 KiB-aligned
+  buffers); a caller's buffer that is not aligned is copied into the adapter's own aligned buffer first.
+- Opening: ``spcm.Card(device).open()`` and then a check of ``function_type()``. Passing ``card_type`` to
+  ``spcm.Card`` with a device name makes ``Card.open()`` compare the type before reading it, so it always
+  raises "not the correct type" (spcm 1.13).
 - ``SPC_SEQMODE_STATUS``: the step playing now. ``M2CMD_CARD_START | ENABLETRIGGER | FORCETRIGGER`` starts
   playback at ``SPC_SEQMODE_STARTSTEP`` at once; ``M2CMD_CARD_FORCETRIGGER`` later is a software trigger.
 - X0..X2 set to ``SPCM_XMODE_ASYNCOUT`` are driven through ``SPCM_XX_ASYNCIO`` (bit k drives Xk); mode changes
@@ -51,29 +56,13 @@ from typing import Any
 
 import numpy as np
 
+from engine import card_rules
 from engine.config import AWGConfig, DevicesConfig
 from engine.devices import DeviceError, StepInfo
 
-__all__ = [
-    "SEGMENT_ALIGN_SAMPLES",
-    "SpectrumAWG",
-    "decode_step",
-    "encode_step",
-    "import_spcm",
-]
+__all__ = ["SpectrumAWG", "import_spcm"]
 
 SpectrumSettings = DevicesConfig.SpectrumSettings
-
-# Register-field layout from the manual's "sequence mode step registers" table (also in spcm_core.regs).
-SPCSEQ_SEGMENTMASK = 0x0000FFFF
-SPCSEQ_NEXTSTEPMASK = 0xFFFF0000
-SPCSEQ_LOOPMASK = 0x000FFFFF
-SPCSEQ_ENDLOOPALWAYS = 0x00000000
-SPCSEQ_ENDLOOPONTRIG = 0x40000000
-SPCSEQ_END = 0x80000000
-
-SEGMENT_ALIGN_SAMPLES = 32  # segment length step, samples per channel (16-bit cards)
-SEGMENT_MIN_SAMPLES_1CH = 384  # minimum for one channel; 192 for two, 96 for four
 
 INSTALL_SPCM = (
     "install it with pip install -e '.[hardware]' (or pip install spcm), then check with 'llrs devices'"
@@ -82,27 +71,6 @@ INSTALL_DRIVER = (
     "install the Spectrum driver for your card (kernel module and libspcm_linux.so, or spcm_win64.dll on Windows) "
     "from https://spectrum-instrumentation.com/support/downloads.php, then check with 'llrs devices'"
 )
-
-
-def encode_step(segment: int, next_step: int, loops: int = 1, *, on_trigger: bool = False, end: bool = False) -> int:
-    """The 64-bit sequence-memory word for one step (layout in the module docstring)."""
-    flags = (SPCSEQ_ENDLOOPONTRIG if on_trigger else SPCSEQ_ENDLOOPALWAYS) | (SPCSEQ_END if end else 0)
-    return ((flags | (loops & SPCSEQ_LOOPMASK)) << 32) | ((next_step << 16) & SPCSEQ_NEXTSTEPMASK) | (
-        segment & SPCSEQ_SEGMENTMASK
-    )
-
-
-def decode_step(word: int) -> dict[str, int | bool]:
-    """Inverse of ``encode_step`` (for tests and diagnostics)."""
-    word &= (1 << 64) - 1
-    high = word >> 32
-    return {
-        "segment": word & SPCSEQ_SEGMENTMASK,
-        "next_step": (word & SPCSEQ_NEXTSTEPMASK) >> 16,
-        "loops": high & SPCSEQ_LOOPMASK,
-        "on_trigger": bool(high & SPCSEQ_ENDLOOPONTRIG),
-        "end": bool(high & SPCSEQ_END),
-    }
 
 
 def import_spcm() -> ModuleType:
@@ -128,19 +96,12 @@ def import_spcm() -> ModuleType:
         ) from None
 
 
-def _pow2_at_least(n: int) -> int:
-    p = 2
-    while p < n:
-        p *= 2
-    return p
-
-
 class SpectrumAWG:
     """``SequenceAWG`` on a Spectrum M4i.66xx card (see the module docstring for the vendor rules it follows).
 
-    ``spcm_module`` replaces ``import spcm`` (tests inject a fake that records every call). ``open()`` is
-    called by ``configure()`` if it was not called before; the factory opens explicitly so that a missing
-    driver shows up when the devices are built, not at the first shot.
+    ``spcm_module`` replaces ``import spcm`` (the tests pass the real package loaded over a fake C library).
+    ``open()`` is called by ``configure()`` if it was not called before; the factory opens explicitly so that
+    a missing driver shows up when the devices are built, not at the first shot.
     """
 
     def __init__(self, settings: SpectrumSettings | None = None, *, spcm_module: ModuleType | None = None) -> None:
@@ -157,6 +118,8 @@ class SpectrumAWG:
         self._step_hit = np.zeros(0, dtype=bool)
         self._step_words: list[int] = []
         self._xio = 0
+        self._staging = np.zeros(0, dtype=np.uint8)  # page-aligned copy of an unaligned upload
+        self.staged_uploads = 0  # uploads that had to be copied (the caller's buffer was not page-aligned)
         self.info: dict[str, Any] = {}
 
     # --- life cycle ------------------------------------------------------------------------------------
@@ -173,7 +136,7 @@ class SpectrumAWG:
         self._spcm = spcm
         dev = self.settings.device
         try:
-            card = spcm.Card(dev, card_type=spcm.SPCM_TYPE_AO)
+            card = spcm.Card(dev)  # no card_type: see the module docstring
             card.open()
         except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends
             raise DeviceError(
@@ -181,6 +144,11 @@ class SpectrumAWG:
                 "in Spectrum Control Center, and that no other program holds it"
             ) from None
         try:
+            if int(card.function_type()) != spcm.SPCM_TYPE_AO:
+                raise DeviceError(
+                    f"Spectrum AWG: {dev!r} is a {card.product_name()}, not an analog output card "
+                    f"(function type {int(card.function_type()):#x}); set devices.spectrum.device to the AWG"
+                )
             self._bind(spcm)
             features = int(card.get_i(spcm.SPC_PCIFEATURES))
             if not features & spcm.SPCM_FEAT_SEQUENCE:
@@ -255,7 +223,7 @@ class SpectrumAWG:
         self.open()
         spcm, card, s = self._spcm, self._card, self.settings
         assert spcm is not None
-        if n_channels not in (1, 2, 4) or n_channels > self.info["channels"]:
+        if n_channels not in card_rules.CHANNEL_COUNTS or n_channels > self.info["channels"]:
             raise DeviceError(
                 f"Spectrum AWG: {n_channels} channels requested; the card enables 1, 2 or 4 "
                 f"(it has {self.info['channels']})"
@@ -263,7 +231,7 @@ class SpectrumAWG:
         rate = int(round(sample_rate_hz))
         if abs(rate - sample_rate_hz) > 1e-6:
             raise DeviceError(f"Spectrum AWG: the sample rate must be a whole number of Hz (waveforms.sample_rate_hz = {sample_rate_hz!r})")
-        max_segments = _pow2_at_least(config.n_segments)
+        max_segments = card_rules.segment_partition(config.n_segments)
         if max_segments > self.info["max_segments"]:
             raise DeviceError(
                 f"Spectrum AWG: awg.n_segments = {config.n_segments} needs {max_segments} segments; the card has "
@@ -328,9 +296,8 @@ class SpectrumAWG:
         self._sample_rate_hz = float(rate)
         self._n_segments = config.n_segments
         self._n_steps = config.n_steps
-        per_segment = self.info["memory_bytes"] // (2 * n_channels * max_segments)
-        self._max_seg = per_segment - per_segment % SEGMENT_ALIGN_SAMPLES
-        self._min_seg = SEGMENT_MIN_SAMPLES_1CH // n_channels
+        self._max_seg = card_rules.max_segment_samples(self.info["memory_bytes"], n_channels, config.n_segments)
+        self._min_seg = card_rules.min_segment_samples(n_channels)
         self._seg_len = [0] * config.n_segments
         self._step_seg = np.full(config.n_steps, -1, dtype=np.int32)
         self._step_hit = np.zeros(config.n_steps, dtype=bool)
@@ -368,21 +335,21 @@ class SpectrumAWG:
                 f"{getattr(samples, 'dtype', type(samples).__name__)}{getattr(samples, 'shape', '')}"
             )
         n = samples.shape[0]
-        if n % SEGMENT_ALIGN_SAMPLES or n < self._min_seg or n > self._max_seg:
+        problem = card_rules.segment_length_problem(n, self._n_channels, self._max_seg)
+        if problem is not None:
             raise DeviceError(
-                f"Spectrum AWG: segment {index}: {n} samples per channel; the card needs a multiple of "
-                f"{SEGMENT_ALIGN_SAMPLES} between {self._min_seg} and {self._max_seg} (make "
-                "waveforms.sample_rate_hz * slot_duration_s a multiple of 32)"
+                f"Spectrum AWG: segment {index}: {problem}; the card needs a multiple of "
+                f"{card_rules.SEGMENT_STEP_SAMPLES} between {self._min_seg} and {self._max_seg}"
             )
         if not samples.flags.c_contiguous:
             raise DeviceError(f"Spectrum AWG: segment {index}: samples must be C-contiguous (the DMA reads them in place)")
+        pointer = self._dma_pointer(samples)
         card = self._card
         try:
             card.set_i(self._R_WRITESEGMENT, index)
             card.set_i(self._R_SEGMENTSIZE, n)
             err = self._def_transfer(
-                card.handle(), self._BUF_DATA, self._DIR_PCTOCARD, 0, ctypes.c_void_p(samples.ctypes.data), 0,
-                samples.nbytes,
+                card.handle(), self._BUF_DATA, self._DIR_PCTOCARD, 0, ctypes.c_void_p(pointer), 0, samples.nbytes
             )
             if err != self._ERR_OK:
                 raise DeviceError(f"Spectrum AWG: defining the DMA buffer for segment {index} failed (error {err:#x})")
@@ -394,6 +361,17 @@ class SpectrumAWG:
         if self._seg_len[index] != n:
             self._seg_len[index] = n
             self._refresh_steps_playing(index)
+
+    def _dma_pointer(self, samples: np.ndarray) -> int:
+        """Where the DMA reads ``samples``: in place when page-aligned, else from the adapter's aligned copy
+        (the card reads it until ``wait_upload``; one DMA runs at a time, so one copy buffer serves)."""
+        if samples.ctypes.data % card_rules.DMA_ALIGN_BYTES == 0:
+            return int(samples.ctypes.data)
+        if self._staging.nbytes < samples.nbytes:
+            self._staging = card_rules.page_aligned_zeros(samples.nbytes, np.uint8)
+        np.copyto(self._staging[: samples.nbytes], samples.reshape(-1).view(np.uint8))
+        self.staged_uploads += 1
+        return int(self._staging.ctypes.data)
 
     def _refresh_steps_playing(self, segment: int) -> None:
         """Rewrite every step that plays ``segment`` (its length changed; see the module docstring)."""
@@ -418,11 +396,11 @@ class SpectrumAWG:
             raise DeviceError(f"Spectrum AWG: step {index}: segment {seg} out of range 0..{self._n_segments - 1}")
         if not 0 <= nxt < self._n_steps:
             raise DeviceError(f"Spectrum AWG: step {index}: next_step {nxt} out of range 0..{self._n_steps - 1}")
-        if not 1 <= loops <= SPCSEQ_LOOPMASK:
-            raise DeviceError(f"Spectrum AWG: step {index}: loops must be 1..{SPCSEQ_LOOPMASK}, got {loops}")
+        if not 1 <= loops <= card_rules.SPCSEQ_LOOPMASK:
+            raise DeviceError(f"Spectrum AWG: step {index}: loops must be 1..{card_rules.SPCSEQ_LOOPMASK}, got {loops}")
         if self._seg_len[seg] == 0:
             raise DeviceError(f"Spectrum AWG: step {index} plays segment {seg}, which holds no samples yet; upload it first")
-        word = (((SPCSEQ_ENDLOOPONTRIG if step.on_trigger else SPCSEQ_ENDLOOPALWAYS) | loops) << 32) | (nxt << 16) | seg
+        word = card_rules.encode_step(seg, nxt, loops, on_trigger=step.on_trigger)
         try:
             self._card.set_i(self._R_STEPMEM0 + index, word)
         except Exception as err:  # noqa: BLE001
@@ -450,7 +428,7 @@ class SpectrumAWG:
         if not self._running:
             return -1
         try:
-            return int(self._card.get_i(self._R_STATUS)) & SPCSEQ_SEGMENTMASK
+            return int(self._card.get_i(self._R_STATUS)) & card_rules.SPCSEQ_SEGMENTMASK
         except Exception as err:  # noqa: BLE001
             raise DeviceError(f"Spectrum AWG: reading the current step failed: {err}") from None
 

@@ -20,9 +20,10 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from engine.timing import REPLAY_HOST_S, STAGES
+from engine.card_rules import slot_length_problem
 from engine.errors import ConfigError
 from engine.targets import build_target
+from engine.timing import REPLAY_HOST_S, STAGES
 from engine.tones import check_below_nyquist
 
 __all__ = [
@@ -496,6 +497,11 @@ class SystemConfig(_Model):
                 "waveforms: sample_rate_hz * slot_duration_s must be a whole number of samples "
                 f"(got {wf.sample_rate_hz * wf.slot_duration_s:g})"
             )
+        # every device, simulated or not, refuses what the card would refuse at its first upload
+        n_channels = 1 if self.array.trap_source == "aod" else 2
+        problem = slot_length_problem(wf.sample_rate_hz, wf.slot_duration_s, n_channels)
+        if problem is not None:
+            raise ValueError(problem)
         grid_hz = 1.0 / wf.slot_duration_s
         for axis in ("x_tones", "y_tones"):
             tones: ToneAxisConfig = getattr(self.array, axis)

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from engine.card_rules import page_aligned_zeros
 from engine.config import SystemConfig
 from engine.devices import Clock, SequenceAWG, StepInfo
 from engine.operations import Operations
@@ -119,10 +120,11 @@ class Streamer:
         self.home = self.layout.idle_step  # the idle step the card rests in between plans
         slot = bank.slot_samples
         ch = bank.n_channels
-        # two segment buffers: the host renders segment k+1 into one while the card's DMA reads segment k
-        self._segment_bufs = [np.zeros((self.slots_per_segment * slot, ch), dtype=np.int16) for _ in range(2)]
-        self._short_buf = np.zeros((2 * self.slots_per_segment * slot, ch), dtype=np.int16)
-        self._failsafe_buf = np.zeros((slot, ch), dtype=np.int16)
+        # two segment buffers: the host renders segment k+1 into one while the card's DMA reads segment k;
+        # page-aligned, so the card's DMA reads them in place (engine/card_rules.py)
+        self._segment_bufs = [page_aligned_zeros((self.slots_per_segment * slot, ch), np.int16) for _ in range(2)]
+        self._short_buf = page_aligned_zeros((2 * self.slots_per_segment * slot, ch), np.int16)
+        self._failsafe_buf = page_aligned_zeros((slot, ch), np.int16)
         self._keys = np.zeros(bank.max_keys(2 * self.slots_per_segment), dtype=np.int64)
         # idle + K control + K failsafe + the short-path segment, at their largest
         total = (

@@ -1,18 +1,28 @@
 """A fake ``pyAndorSDK2`` for testing ``drivers/andor.py`` without a camera or Andor's SDK.
 
-Calls return what the real wrapper returns (a status, or ``(status, values...)``; ``DRV_SUCCESS = 20002``)
-and are all recorded in ``fake.log``. The model keeps the rules the adapter must respect:
+Every call is checked against the real wrapper's signature (``SIGNATURES``: the parameters of
+``pyAndorSDK2.atmcd``'s methods and the ctypes type each one is converted to), so a wrong argument count or
+type raises ``TypeError`` as the wrapper's ``c_int(...)`` / ``c_float(...)`` / ``str.encode`` would. Calls
+return what the real wrapper returns (a status, or ``(status, values...)``; ``DRV_SUCCESS = 20002``;
+``GetMostRecentImage16`` an int16 array, since the wrapper allocates ``c_short * size``;
+``GetCapabilities`` an ``AndorCapabilities`` structure) and are all recorded in ``fake.log``. The model keeps
+the rules the adapter must respect:
+- a setting the camera lacks (``GetCapabilities``) is refused: ``SetEMAdvanced`` with
+  ``DRV_NOT_AVAILABLE``, ``SetCameraLinkMode`` and isolated crop mode with ``DRV_NOT_SUPPORTED``;
+- the EM gain range depends on the gain mode and on ``SetEMAdvanced`` (above x300 needs it);
 - nothing works before ``Initialize``; settings are refused with ``DRV_ACQUIRING`` while acquiring;
 - ``SetImage`` takes 1-based inclusive sensor coordinates whose spans divide by the binning and fit the
   detector;
 - in run-till-abort mode each trigger makes one frame (software trigger in mode 10, ``external_trigger()``
   in mode 1); frames go to Camera Link sinks (a fake grabber) when Camera Link mode is on, and are counted
   and kept for ``GetMostRecentImage16`` either way;
-- EM gain within ``GetEMGainRange`` of the current gain mode; temperatures within the cooler's range.
+- temperatures within the cooler's range.
 """
 
 from __future__ import annotations
 
+import ctypes
+import inspect
 import threading
 import types
 from collections.abc import Callable
@@ -30,6 +40,69 @@ DRV_P2INVALID = 20067
 DRV_ACQUIRING = 20072
 DRV_IDLE = 20073
 DRV_NOT_INITIALIZED = 20075
+DRV_NOT_SUPPORTED = 20991
+DRV_NOT_AVAILABLE = 20992
+
+# Capability bits (atmcd.h / pyAndorSDK2's capability codes).
+AC_SETFUNCTION_EMCCDGAIN = 0x10
+AC_SETFUNCTION_CROPMODE = 0x0400
+AC_SETFUNCTION_EMADVANCED = 0x8000
+AC_FEATURES_CAMERALINK = 0x8000000
+AC_EMGAIN_8BIT, AC_EMGAIN_12BIT, AC_EMGAIN_LINEAR12, AC_EMGAIN_REAL12 = 1, 2, 4, 8
+IXON_SET_FUNCTIONS = AC_SETFUNCTION_EMCCDGAIN | AC_SETFUNCTION_CROPMODE | AC_SETFUNCTION_EMADVANCED
+IXON_FEATURES = AC_FEATURES_CAMERALINK
+IXON_EM_GAIN = AC_EMGAIN_8BIT | AC_EMGAIN_12BIT | AC_EMGAIN_LINEAR12 | AC_EMGAIN_REAL12
+
+
+class AndorCapabilities(ctypes.Structure):
+    """``AndorCapabilities`` as the wrapper declares it (every field a C unsigned long)."""
+
+    _fields_ = [(name, ctypes.c_ulong) for name in (
+        "ulSize", "ulAcqModes", "ulReadModes", "ulTriggerModes", "ulCameraType", "ulPixelMode", "ulSetFunctions",
+        "ulGetFunctions", "ulFeatures", "ulPCICard", "ulEMGainCapability", "ulFTReadModes", "ulFeatures2")]
+
+
+# The wrapper's methods: parameter names and the conversion each argument goes through ("int": c_int,
+# "float": c_float, "str": str.encode). Methods without parameters take none.
+SIGNATURES: dict[str, tuple[tuple[str, str], ...]] = {
+    "GetAvailableCameras": (), "GetCameraHandle": (("cameraIndex", "int"),),
+    "SetCurrentCamera": (("cameraHandle", "int"),), "Initialize": (("dir", "str"),), "GetDetector": (),
+    "GetCameraSerialNumber": (), "GetCapabilities": (), "SetTemperature": (("temperature", "int"),),
+    "GetTemperatureRange": (), "CoolerON": (), "CoolerOFF": (), "SetCoolerMode": (("mode", "int"),),
+    "GetTemperature": (), "AbortAcquisition": (), "SetReadMode": (("mode", "int"),),
+    "SetAcquisitionMode": (("mode", "int"),), "SetFrameTransferMode": (("mode", "int"),),
+    "SetOutputAmplifier": (("typ", "int"),), "SetHSSpeed": (("typ", "int"), ("index", "int")),
+    "GetFastestRecommendedVSSpeed": (), "SetVSSpeed": (("index", "int"),), "SetVSAmplitude": (("index", "int"),),
+    "SetPreAmpGain": (("index", "int"),), "SetEMGainMode": (("mode", "int"),), "GetEMGainRange": (),
+    "SetEMAdvanced": (("state", "int"),), "SetEMCCDGain": (("gain", "int"),), "GetEMCCDGain": (),
+    "SetBaselineClamp": (("state", "int"),), "SetCameraLinkMode": (("mode", "int"),),
+    "SetIsolatedCropModeEx": (("active", "int"), ("cropheight", "int"), ("cropwidth", "int"), ("vbin", "int"),
+                              ("hbin", "int"), ("cropleft", "int"), ("cropbottom", "int")),
+    "SetImage": (("hbin", "int"), ("vbin", "int"), ("hstart", "int"), ("hend", "int"), ("vstart", "int"),
+                 ("vend", "int")),
+    "SetExposureTime": (("time", "float"),), "SetTriggerMode": (("mode", "int"),),
+    "SetShutter": (("typ", "int"), ("mode", "int"), ("closingtime", "int"), ("openingtime", "int")),
+    "SetKineticCycleTime": (("time", "float"),), "GetAcquisitionTimings": (), "GetReadOutTime": (),
+    "PrepareAcquisition": (), "StartAcquisition": (), "SendSoftwareTrigger": (), "GetStatus": (),
+    "GetTotalNumberImagesAcquired": (), "WaitForAcquisitionTimeOut": (("iTimeOutMs", "int"),),
+    "GetMostRecentImage16": (("size", "int"),), "ShutDown": (),
+}
+_CONVERT: dict[str, Callable[[Any], Any]] = {"int": ctypes.c_int, "float": ctypes.c_float, "str": str.encode}
+
+
+def check_signature(name: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> tuple[Any, ...]:
+    """Bind the call as the wrapper's method would and convert each argument as it does; ``TypeError`` if
+    the wrapper would raise it (wrong count, unknown keyword, a float where it builds a ``c_int``...)."""
+    params = SIGNATURES[name]
+    signature = inspect.Signature(
+        [inspect.Parameter(p, inspect.Parameter.POSITIONAL_OR_KEYWORD) for p, _ in params])
+    bound = signature.bind(*args, **kwargs)
+    for pname, kind in params:
+        value = bound.arguments[pname]
+        if kind == "int" and isinstance(value, float):
+            raise TypeError(f"{name}: {pname} = {value!r}: the wrapper builds c_int({pname}), which takes no float")
+        _CONVERT[kind](value)
+    return tuple(bound.args)
 
 
 def pattern(frame_index: int, shape: tuple[int, int]) -> np.ndarray:
@@ -43,7 +116,12 @@ class FakeAndor:
     """State shared by a fake module: cameras, the call log, frame production."""
 
     def __init__(self, n_cameras: int = 1, detector: tuple[int, int] = (1024, 1024), *,
-                 library_missing: bool = False) -> None:
+                 library_missing: bool = False, set_functions: int = IXON_SET_FUNCTIONS,
+                 features: int = IXON_FEATURES, em_gain_capability: int = IXON_EM_GAIN) -> None:
+        self.set_functions = set_functions
+        self.features = features
+        self.em_gain_capability = em_gain_capability
+        self.initialize_dir: str | None = None
         self.n_cameras = n_cameras
         self.detector = detector
         self.library_missing = library_missing
@@ -84,10 +162,10 @@ class FakeAndor:
         return False
 
 
-def make_fake_andor(n_cameras: int = 1, detector: tuple[int, int] = (1024, 1024), *,
-                    library_missing: bool = False) -> types.ModuleType:
-    """A module that can stand in for ``pyAndorSDK2``; its ``fake`` attribute is the shared ``FakeAndor``."""
-    fake = FakeAndor(n_cameras, detector, library_missing=library_missing)
+def make_fake_andor(n_cameras: int = 1, detector: tuple[int, int] = (1024, 1024), **kwargs: Any) -> types.ModuleType:
+    """A module that can stand in for ``pyAndorSDK2``; its ``fake`` attribute is the shared ``FakeAndor``
+    (``kwargs``: ``library_missing`` and the camera's capabilities, see ``FakeAndor``)."""
+    fake = FakeAndor(n_cameras, detector, **kwargs)
     mod = types.ModuleType("pyAndorSDK2")
     mod.fake = fake  # type: ignore[attr-defined]
 
@@ -104,7 +182,8 @@ def make_fake_andor(n_cameras: int = 1, detector: tuple[int, int] = (1024, 1024)
             if impl is None:
                 raise AttributeError(name)
 
-            def call(*args: Any) -> Any:
+            def call(*args: Any, **kwargs: Any) -> Any:
+                args = check_signature(name, args, kwargs)
                 fake.log.append((name, *args))
                 if name not in ("GetAvailableCameras", "GetCameraHandle", "SetCurrentCamera", "Initialize") \
                         and not fake.initialized:
@@ -150,18 +229,45 @@ def _check_image(fake: FakeAndor, args: tuple[Any, ...]) -> int:
 
 
 def _em_range(fake: FakeAndor) -> tuple[int, int]:
+    """The range for the current gain mode; gains above x300 (real) or DAC 300 exist only in advanced mode."""
     mode = fake.settings.get("SetEMGainMode", 0)
-    return {0: (0, 255), 1: (0, 4095), 2: (0, 4095), 3: (0, 1000)}[mode]
+    advanced = bool(fake.settings.get("SetEMAdvanced"))
+    if mode == 0:
+        return 0, 255
+    if mode == 3:
+        return 1, 1000 if advanced else 300
+    return 0, 4095 if advanced else 300
 
 
 def _check_gain(fake: FakeAndor, args: tuple[Any, ...]) -> int:
     lo, hi = _em_range(fake)
-    if not lo <= args[0] <= hi or (args[0] > 300 and not fake.settings.get("SetEMAdvanced")):
-        return DRV_P1INVALID
-    return DRV_SUCCESS
+    return DRV_SUCCESS if lo <= args[0] <= hi else DRV_P1INVALID
+
+
+def _check_gain_mode(fake: FakeAndor, args: tuple[Any, ...]) -> int:
+    bit = {0: AC_EMGAIN_8BIT, 1: AC_EMGAIN_12BIT, 2: AC_EMGAIN_LINEAR12, 3: AC_EMGAIN_REAL12}.get(args[0], 0)
+    return DRV_SUCCESS if fake.em_gain_capability & bit else DRV_P1INVALID
+
+
+def _needs(flag: str, bit: int, refusal: int) -> Callable[[FakeAndor, tuple[Any, ...]], int]:
+    """A check that refuses the call on a camera without the capability bit ``bit`` of ``flag``."""
+    def check(fake: FakeAndor, args: tuple[Any, ...]) -> int:
+        return DRV_SUCCESS if getattr(fake, flag) & bit else refusal
+
+    return check
+
+
+def _capabilities(fake: FakeAndor) -> tuple[int, AndorCapabilities]:
+    caps = AndorCapabilities()
+    caps.ulSize = ctypes.sizeof(caps)
+    caps.ulSetFunctions = fake.set_functions
+    caps.ulFeatures = fake.features
+    caps.ulEMGainCapability = fake.em_gain_capability
+    return DRV_SUCCESS, caps
 
 
 def _initialize(fake: FakeAndor, path: str) -> int:
+    fake.initialize_dir = path
     fake.initialized = True
     return DRV_SUCCESS
 
@@ -206,7 +312,7 @@ def _most_recent(fake: FakeAndor, size: int) -> tuple[int, np.ndarray]:
     frame = fake.frames[-1]
     if size != frame.size:
         return DRV_P2INVALID, np.zeros(0, np.uint16)
-    return DRV_SUCCESS, frame.reshape(-1).copy()
+    return DRV_SUCCESS, frame.reshape(-1).view(np.int16).copy()  # the wrapper's c_short buffer: int16
 
 
 def _set_temperature(fake: FakeAndor, t: int) -> int:
@@ -252,13 +358,18 @@ _IMPL: dict[str, Callable[..., Any]] = {
     "SetVSSpeed": _setter("SetVSSpeed", lambda f, a: DRV_SUCCESS if 0 <= a[0] < 4 else DRV_P1INVALID),
     "SetVSAmplitude": _setter("SetVSAmplitude"),
     "SetPreAmpGain": _setter("SetPreAmpGain"),
-    "SetEMGainMode": _setter("SetEMGainMode"),
+    "GetCapabilities": _capabilities,
+    "GetTemperatureRange": lambda f: (DRV_SUCCESS, -120, 30),
+    "GetStatus": lambda f: (DRV_SUCCESS, DRV_ACQUIRING if f.acquiring else DRV_IDLE),
+    "GetEMCCDGain": lambda f: (DRV_SUCCESS, f.settings.get("SetEMCCDGain", 0)),
+    "SetEMGainMode": _setter("SetEMGainMode", _check_gain_mode),
     "GetEMGainRange": lambda f: (DRV_SUCCESS, *_em_range(f)),
-    "SetEMAdvanced": _setter("SetEMAdvanced"),
+    "SetEMAdvanced": _setter("SetEMAdvanced", _needs("set_functions", AC_SETFUNCTION_EMADVANCED, DRV_NOT_AVAILABLE)),
     "SetEMCCDGain": _setter("SetEMCCDGain", _check_gain),
     "SetBaselineClamp": _setter("SetBaselineClamp"),
-    "SetCameraLinkMode": _setter("SetCameraLinkMode"),
-    "SetIsolatedCropModeEx": _setter("SetIsolatedCropModeEx"),
+    "SetCameraLinkMode": _setter("SetCameraLinkMode", _needs("features", AC_FEATURES_CAMERALINK, DRV_NOT_SUPPORTED)),
+    "SetIsolatedCropModeEx": _setter("SetIsolatedCropModeEx",
+                                     _needs("set_functions", AC_SETFUNCTION_CROPMODE, DRV_NOT_SUPPORTED)),
     "SetImage": _setter("SetImage", _check_image),
     "SetExposureTime": _setter("SetExposureTime"),
     "SetTriggerMode": _setter("SetTriggerMode", lambda f, a: DRV_SUCCESS if a[0] in (0, 1, 10) else DRV_P1INVALID),

@@ -141,7 +141,7 @@ def grid_config(nx: int = 8, ny: int = 6, **over) -> SystemConfig:
         },
         "target": {"kind": "rectangle", "row0": 0, "col0": 0, "rows": 1, "cols": 1},
         "camera": {"roi_width_px": 16 * nx, "roi_height_px": 16 * ny},
-        "waveforms": {"sample_rate_hz": 312e6},
+        "waveforms": {"sample_rate_hz": 313.6e6},  # 3136 samples per 10 us slot: a multiple of 32, as the card needs
         "awg": {"n_segments": 16, "n_steps": 64, "waveforms_per_segment": 4},
     }
     return config_from_dict(_merge(data, over))

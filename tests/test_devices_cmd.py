@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from drivers.factory import available_devices, open_devices
-from engine.config import DevicesConfig, SystemConfig, config_from_dict
+from engine.config import ConfigError, DevicesConfig, SystemConfig, config_from_dict
 from engine.devices import DeviceError
 from server import devices_cmd
 from tests.fake_activesilicon import FakePhxLibrary
@@ -42,7 +42,7 @@ def test_probing_opens_the_real_devices_through_their_vendor_software(tmp_path: 
     entries = by_key(available_devices(devices, spcm_module=spcm, andor_module=make_fake_andor(n_cameras=2),
                                        phx_library=FakePhxLibrary()))
     assert all(e["available"] for e in entries.values())
-    assert "M4i.6622-x8 (fake) s/n 12345 at /dev/spcm0: 4 channels, 4.0 GiB" in entries[("awg", "spectrum")]["detail"]
+    assert "M4i.6622-x8 s/n 12345 at /dev/spcm0: 4 channels, 4.0 GiB" in entries[("awg", "spectrum")]["detail"]
     assert not spcm.fake.cards["/dev/spcm0"].opened  # probed, then closed again
     assert "sees 2 camera(s)" in entries[("camera", "andor")]["detail"]
     assert "board 1 channel 1 opens" in entries[("frame_source", "activesilicon")]["detail"]
@@ -142,9 +142,76 @@ def test_when_the_camera_fails_the_opened_awg_is_closed_again() -> None:
     assert not spcm.fake.cards["/dev/spcm0"].opened
 
 
-def test_a_slot_length_the_card_cannot_play_is_refused_before_opening() -> None:
-    config = config_from_dict({"devices": {"awg": "spectrum"}, "waveforms": {"sample_rate_hz": 312e6}})
-    spcm = make_fake_spcm()
-    with pytest.raises(DeviceError, match=r"slot is 3120 samples .*multiples of 32.*3136"):
-        open_devices(config, spcm_module=spcm)
-    assert not [c for c in spcm.fake.log if c[0] == "open"]
+@pytest.mark.parametrize("awg", ["sim", "spectrum"])
+def test_a_slot_length_the_card_cannot_play_is_refused_when_the_configuration_is_applied(awg: str) -> None:
+    """625 MS/s x 10 us = 6250 samples: the card refuses it at the first upload, so every device set refuses
+    the configuration, the simulated one included (it would otherwise run what the lab cannot)."""
+    with pytest.raises(ConfigError, match=r"10 us x 625 MS/s = 6250 samples.*multiples of 32.*624 MS/s or 627\.2 MS/s"):
+        config_from_dict({"devices": {"awg": awg}, "waveforms": {"sample_rate_hz": 625e6}})
+
+
+# --- llrs devices check -------------------------------------------------------------------------------------
+
+def _check_args(**kw: Any) -> argparse.Namespace:
+    return argparse.Namespace(**{"config": None, "frames": 3, "json": False, "action": "check", **kw})
+
+
+def test_the_bring_up_check_passes_on_the_simulated_lab(capsys: pytest.CaptureFixture[str]) -> None:
+    assert devices_cmd.cmd_check(_check_args()) == 0
+    lines = capsys.readouterr().out.splitlines()
+    names = ["devices opened", "idle waveform within the RF limits", "AWG configured", "idle segment uploaded",
+             "idle played through steps 0 -> 1 -> 2", "steps rewritten while playing", "AWG status",
+             "camera configured", "frames acquired", "readout time vs model", "camera temperature and gain"]
+    assert [line[6:].split("  ")[0].strip() for line in lines] == names
+    assert all(line.startswith("PASS") for line in lines)
+    readout = next(line for line in lines if "readout time vs model" in line)
+    assert "ratio 1.00" in readout  # the simulated camera follows the readout model
+
+
+def test_the_check_names_a_failure_and_its_fix_and_stops_the_awg(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump({"sim": {"faults": {"camera": "timeout"}}}))
+    assert devices_cmd.cmd_check(_check_args(config=str(path), json=True)) == 1
+    results = {r["name"]: r for r in json.loads(capsys.readouterr().out)}
+    assert results["steps rewritten while playing"]["passed"]  # the AWG part is independent of the camera
+    frames = results["frames acquired"]
+    assert not frames["passed"] and "trigger cable" in frames["fix"] and frames["detail"]
+    assert "readout time vs model" not in results  # nothing to compare without frames
+
+
+def test_the_check_plays_only_the_idle_waveform_on_the_card(tmp_path: Path) -> None:
+    """The same sequence on the real adapters (over the fake card and camera): the card never plays anything
+    but the idle segment, breaks none of its rules, and is stopped at the end."""
+    config = config_from_dict({"devices": {"awg": "spectrum", "camera": "andor", "andor": {"trigger": "software"}}})
+    spcm, andor = make_fake_spcm(), make_fake_andor()
+    devices, _ = open_devices(config, spcm_module=spcm, andor_module=andor)
+    try:
+        results = {r.name: r for r in devices_cmd.bring_up(config, devices, n_frames=2)}
+    finally:
+        devices.close()
+    card = spcm.fake.cards["/dev/spcm0"]
+    assert all(results[name].passed for name in ("idle waveform within the RF limits", "AWG configured",
+                                                 "idle segment uploaded", "steps rewritten while playing",
+                                                 "AWG status", "frames acquired"))
+    assert "M4i.6622-x8 s/n 12345" in results["AWG status"].detail
+    assert "mV of" in results["idle waveform within the RF limits"].detail
+    assert card.played and {p.segment for p in card.played} == {0} and card.violations == []
+    from engine.waveforms import WaveformBank
+
+    hold = WaveformBank(config).hold()
+    assert all(np.array_equal(p.data, hold) for p in card.played)
+    assert not card.running
+    temperature = results["camera temperature and gain"]
+    assert temperature.passed and "DRV_TEMP_STABILIZED" in temperature.detail
+    assert "EM gain 300 (camera.em_gain 300)" in temperature.detail  # read back from the camera
+    # the fake camera makes frames instantly: its readout cannot match the model, and the check says so
+    readout = results["readout time vs model"]
+    assert not readout.passed and "vertical_shift_s" in readout.fix
+
+
+def test_llrs_devices_check_on_the_command_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from server.cli import main
+
+    assert main(["devices", "check", "--frames", "1", "--json"]) == 0
+    assert all(r["passed"] for r in json.loads(capsys.readouterr().out))

@@ -1,16 +1,19 @@
-"""The Spectrum adapter against a fake ``spcm`` that records every call and enforces the manual's sequence-mode
-rules (see ``tests/fake_spcm.py``): step words, the order of uploads and pointer updates, the card setup,
-the X-line pulses, and what opening says when the package or its driver is missing."""
+"""The Spectrum adapter through the real ``spcm`` package over a fake of Spectrum's C library, a register-level
+card that records every call and enforces the manual's sequence-mode rules (see ``tests/fake_spcm.py``):
+opening, step words, the order of uploads and pointer updates, the card setup, DMA alignment, the X-line
+pulses, and what opening says when the package or its driver is missing."""
 
 from __future__ import annotations
 
+import ctypes
 import sys
 from typing import Any
 
 import numpy as np
 import pytest
 
-from drivers.spectrum import SpectrumAWG, decode_step, encode_step
+from drivers.spectrum import SpectrumAWG
+from engine.card_rules import DMA_ALIGN_BYTES, decode_step, encode_step, page_aligned_zeros
 from engine.config import AWGConfig, DevicesConfig, config_from_dict
 from engine.devices import DeviceError, StepInfo
 from tests.fake_spcm import C, DRIVER_MISSING_TEXT, decode, install_broken_spcm, is_step_register, make_fake_spcm
@@ -27,7 +30,8 @@ def open_awg(n_channels: int = 1, *, settings: dict[str, Any] | None = None, awg
 
 
 def samples(value: int, n: int = N, ch: int = 1) -> np.ndarray:
-    out = np.empty((n, ch), dtype=np.int16)
+    """A segment in a page-aligned buffer, as the streamer allocates them (the card DMAs it in place)."""
+    out = page_aligned_zeros((n, ch), np.int16)
     out[:] = np.arange(ch, dtype=np.int16) + value
     return out
 
@@ -94,6 +98,46 @@ def test_open_a_missing_card_names_the_device_setting() -> None:
     mod = make_fake_spcm(device="/dev/spcm1")
     with pytest.raises(DeviceError, match=r"cannot open '/dev/spcm0'.*devices\.spectrum\.device"):
         SpectrumAWG(spcm_module=mod).open()
+
+
+def test_open_works_through_the_real_spcm_whose_card_type_check_cannot_pass() -> None:
+    """``spcm.Card(device, card_type=...)`` compares the type before reading it (spcm 1.13): it never opens.
+    The adapter opens without it and checks ``function_type()`` itself."""
+    mod = make_fake_spcm()
+    with pytest.raises(mod.SpcmException, match="not the correct type"):
+        mod.Card("/dev/spcm0", card_type=mod.SPCM_TYPE_AO).open()
+    awg = SpectrumAWG(spcm_module=mod)
+    awg.open()
+    assert awg.info["product"] == "M4i.6622-x8" and awg.info["channels"] == 4 and awg.info["max_sample_value"] == 32767
+    awg.close()
+
+
+def test_a_card_that_is_not_an_awg_is_refused_and_closed() -> None:
+    mod = make_fake_spcm(function_type=C.SPCM_TYPE_AI)
+    with pytest.raises(DeviceError, match=r"not an analog output card.*devices\.spectrum\.device"):
+        SpectrumAWG(spcm_module=mod).open()
+    assert not mod.fake.cards["/dev/spcm0"].opened
+
+
+def test_the_fake_card_refuses_what_the_manual_forbids_through_spcm_itself() -> None:
+    """Below the adapter: writes straight through ``spcm`` meet the card's rules (``engine.card_rules``)."""
+    mod = make_fake_spcm()
+    card = mod.Card("/dev/spcm0").open()
+    card.set_i(C.SPC_CHENABLE, C.CHANNEL0)
+    card.set_i(C.SPC_SEQMODE_MAXSEGMENTS, 16)
+    card.set_i(C.SPC_SEQMODE_WRITESEGMENT, 0)
+    with pytest.raises(mod.SpcmException, match="6250 samples per channel is not a multiple of 32"):
+        card.set_i(C.SPC_SEQMODE_SEGMENTSIZE, 6250)  # 625 MS/s x 10 us
+    with pytest.raises(mod.SpcmException, match="not a power of two"):
+        card.set_i(C.SPC_SEQMODE_MAXSEGMENTS, 24)
+    state = mod.fake.cards["/dev/spcm0"]
+    state.running = True
+    with pytest.raises(mod.SpcmException, match="SPC_SAMPLERATE written while the card runs"):
+        card.set_i(C.SPC_SAMPLERATE, 625_000_000)
+    assert len(state.violations) == 3
+    with pytest.raises(ctypes.ArgumentError):  # what ctypes cannot pass to the C function, the fake refuses
+        mod.spcm_dwDefTransfer_i64(card.handle(), C.SPCM_BUF_DATA, C.SPCM_DIR_PCTOCARD, 0, 4096.0, 0, 64)
+    card.close()
 
 
 def test_a_card_without_the_sequence_option_is_refused_and_closed() -> None:
@@ -173,6 +217,21 @@ def test_upload_selects_sizes_defines_the_buffer_then_runs_a_blocking_dma() -> N
     assert calls[3][1:] == (C.SPC_M2CMD, C.M2CMD_DATA_STARTDMA | C.M2CMD_DATA_WAITDMA)
     np.testing.assert_array_equal(card.segments[5], data)  # channels multiplexed sample by sample
     assert card.violations == []
+
+
+def test_an_unaligned_buffer_reaches_the_card_from_page_aligned_memory() -> None:
+    """Spectrum's DMA reads page-aligned host memory; numpy gives no alignment, so the adapter copies."""
+    awg, card = open_awg(2)
+    backing = page_aligned_zeros(640 * 2 * 2 + 2, np.uint8)
+    data = backing[2:].view(np.int16).reshape(640, 2)  # 2 B past a page boundary
+    data[:] = samples(7, n=640, ch=2)
+    awg.write_segment(3, data)
+    pointer = next(c for c in reversed(card_log(awg)) if c[0] == "DefTransfer")[4].value
+    assert pointer % DMA_ALIGN_BYTES == 0 and pointer != data.ctypes.data
+    np.testing.assert_array_equal(card.segments[3], data)
+    assert awg.staged_uploads == 1 and card.violations == []
+    awg.write_segment(4, samples(8, n=640, ch=2))  # aligned: read in place, no copy
+    assert awg.staged_uploads == 1
 
 
 def test_a_resized_segment_gets_its_steps_rewritten_after_the_dma() -> None:
@@ -379,3 +438,4 @@ def test_the_streamers_uploads_and_pointer_updates_obey_the_card(passes_per_dma:
                 assert written[nxt] < i and uploaded[decode(card_log(awg)[written[nxt]][2])[0]] < written[nxt]
             written[step] = i
     assert (seen_failsafe > 0) == (passes_per_dma > 0)  # a card faster than the uploads pauses in failsafes
+    assert awg.staged_uploads <= 1  # at most the idle hold is copied: the streamer's buffers are page-aligned

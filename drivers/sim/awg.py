@@ -35,6 +35,7 @@ import numpy as np
 
 from drivers.sim.decode import DecodedSegment, SampleDecoder
 from drivers.sim.world import World
+from engine import card_rules
 from engine.config import AWGConfig, SystemConfig
 from engine.devices import Clock, DeviceError, StepInfo
 
@@ -115,6 +116,8 @@ class SimAWG:
 
     def configure(self, config: AWGConfig, *, n_channels: int, sample_rate_hz: float) -> None:
         """Reset the card: clear sequence memory and stop playback."""
+        if n_channels not in card_rules.CHANNEL_COUNTS:
+            raise DeviceError(f"sim AWG: {n_channels} channels requested; the card enables 1, 2 or 4")
         with self._lock:
             try:
                 decoder = SampleDecoder(
@@ -208,6 +211,9 @@ class SimAWG:
             raise DeviceError(
                 f"sim AWG: segment {index}: samples must be int16[n > 0, {self._n_channels}], got shape {samples.shape}"
             )
+        problem = card_rules.segment_length_problem(samples.shape[0], self._n_channels)
+        if problem is not None:  # the card's rules (engine/card_rules.py): refuse what the card refuses
+            raise DeviceError(f"sim AWG: segment {index}: {problem}; the Spectrum card would refuse it")
         if self._running and self._pass_segment == index:
             raise DeviceError(f"sim AWG: segment {index} is playing right now (step {self._step}); it cannot be written")
         used = sum(s.data.nbytes for i, s in enumerate(self._latest_segments()) if s is not None and i != index)
@@ -227,8 +233,11 @@ class SimAWG:
                 raise DeviceError(f"sim AWG: step {index}: segment {step.segment} out of range 0..{n_seg - 1}")
             if not 0 <= step.next_step < n_steps:
                 raise DeviceError(f"sim AWG: step {index}: next_step {step.next_step} out of range 0..{n_steps - 1}")
-            if step.loops < 1:
-                raise DeviceError(f"sim AWG: step {index}: loops must be >= 1, got {step.loops}")
+            if not 1 <= step.loops <= card_rules.SPCSEQ_LOOPMASK:
+                raise DeviceError(
+                    f"sim AWG: step {index}: loops must be 1..{card_rules.SPCSEQ_LOOPMASK} (the step word's loop "
+                    f"field), got {step.loops}"
+                )
             cost = self.awg_config.step_write_s + self.step_write_delay_s
             t_eff = self.clock.now_s() + cost
             self.clock.advance(cost)

@@ -45,10 +45,11 @@ class EngineProcessDied(RuntimeError):
     that re-opens the devices) to get a new one."""
 
 
-def shot_with_frame(engine: Any) -> tuple[ShotRecord, np.ndarray | None]:
-    """One shot and its final camera frame (``None`` if the engine offers none): the service's shot command,
-    module-level so that it can be sent to an engine process."""
-    record = engine.run_shot()
+def shot_with_frame(engine: Any, shot_id: int | None = None) -> tuple[ShotRecord, np.ndarray | None]:
+    """One shot (numbered ``shot_id``; ``None``: the engine's own count) and its final camera frame (``None``
+    if the engine offers none): the service's shot command, module-level so that it can be sent to an engine
+    process."""
+    record = engine.run_shot(shot_id)
     last_frame = getattr(engine, "last_frame", None)
     return record, (last_frame() if last_frame is not None else None)
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from engine.config import SystemConfig
 from engine.imaging import model_threshold, weighted_sums_reference
-from engine.imaging_calibration import Population, calibrate_threshold, error_probability, fit_psf
+from engine.imaging_calibration import Population, ThresholdCalibration, calibrate_threshold, error_probability, fit_psf
 from engine.psf import PsfModel, psf_from_config
 
 __all__ = ["MIN_SEPARATION", "psf_calibration", "threshold_calibration", "weighted_sums"]
@@ -31,6 +31,19 @@ def _fidelity(counts: np.ndarray) -> float:
     return calibrate_threshold(counts).fidelity
 
 
+def _two_populations(counts: np.ndarray) -> ThresholdCalibration:
+    """The threshold fit of ``counts``, if they split into empty and filled traps (``MIN_SEPARATION``);
+    ``ValueError`` if not: frames without atoms (or with every trap full) calibrate nothing."""
+    cal = calibrate_threshold(counts)
+    separation = (cal.mean_atom - cal.mean_empty) / float(np.hypot(cal.std_empty, cal.std_atom))
+    if separation < MIN_SEPARATION:
+        raise ValueError(
+            f"the weighted sums look like a single population (the two fitted ones are only {separation:.1f} "
+            f"standard deviations apart, {MIN_SEPARATION:g} needed); image a partly loaded array to calibrate"
+        )
+    return cal
+
+
 def threshold_calibration(images: np.ndarray, config: SystemConfig) -> dict:
     """Fit the occupancy threshold to the weighted sums of ``images`` (``uint16[k, h, w]``) under ``config``'s PSF.
 
@@ -39,14 +52,7 @@ def threshold_calibration(images: np.ndarray, config: SystemConfig) -> dict:
     under the same fitted populations, so the two fidelities are directly comparable.
     """
     psf = psf_from_config(config)
-    counts = weighted_sums(images, psf)
-    cal = calibrate_threshold(counts)
-    separation = (cal.mean_atom - cal.mean_empty) / float(np.hypot(cal.std_empty, cal.std_atom))
-    if separation < MIN_SEPARATION:
-        raise ValueError(
-            f"the weighted sums look like a single population (the two fitted ones are only {separation:.1f} "
-            f"standard deviations apart, {MIN_SEPARATION:g} needed); image a partly loaded array to calibrate"
-        )
+    cal = _two_populations(weighted_sums(images, psf))
     empty = Population(np.float64(cal.mean_empty), np.float64(cal.std_empty), np.float64(cal.skew_empty))
     atom = Population(np.float64(cal.mean_atom), np.float64(cal.std_atom), np.float64(cal.skew_atom))
     if config.imaging.threshold is not None:
@@ -105,6 +111,7 @@ def psf_calibration(images: np.ndarray, config: SystemConfig) -> dict:
     """
     cam = config.camera
     nominal = psf_from_config(config)
+    _two_populations(weighted_sums(images, nominal))  # a PSF is fitted to atoms: refuse frames without any
     fitted = fit_psf(images, config)
     binning = np.asarray(cam.binning, dtype=np.float64)
     to_sensor = lambda frame_xy: (frame_xy + 0.5) * binning - 0.5  # noqa: E731 - inverse of sensor_to_frame_px

@@ -5,9 +5,11 @@ writer, viser's websocket thread and the dashboard's drawing thread; uvicorn run
 thread's event loop and owns Ctrl-C / SIGTERM: when it returns, the dashboard and the engine are stopped and
 the run file is closed.
 
-Security: without ``LLRS_TOKEN`` anyone who can reach the port can run shots, so the server binds only to a
-loopback address unless a token is set; with a token every mutating route needs ``Authorization: Bearer``.
-CORS stays closed unless origins are named with ``--cors-origin``.
+Security (README, "Security"): without ``LLRS_TOKEN`` anyone who can reach the port can run shots, so the
+server binds only to a loopback address unless a token is set, and then answers only to loopback host names;
+with a token every mutating route needs ``Authorization: Bearer`` and the dashboard's controls need the token
+too. CORS stays closed unless origins are named with ``--cors-origin``. Files named by clients come only from
+``--tone-dir`` and ``--shot-dir`` (``server.files``).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import argparse
 import asyncio
 import ipaddress
 import os
+import resource
 import signal
 import socket
 import sys
@@ -58,6 +61,12 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # t
     p.add_argument("--idle", action="store_true", help="do not start shots at once; wait for a command")
     p.add_argument("--no-dashboard", action="store_true", help="serve the API only")
     p.add_argument("--cors-origin", action="append", default=[], help="allow browsers on this origin to call the API (repeatable)")
+    p.add_argument("--tone-dir", type=Path, default=None,
+                   help="directory that tone CSVs (array.*_tones.csv) named in configurations sent to the API must "
+                   "lie in (default: none, so the API accepts no new tone file)")
+    p.add_argument("--shot-dir", type=Path, default=None,
+                   help="directory that labscript shot files sent to POST /api/labscript must lie in "
+                   "(default: none, so the route refuses every file)")
     p.add_argument("--engine", choices=("process", "thread"), default="process",
                    help="run the engine in a process of its own (default: its latency does not suffer from API "
                    "traffic) or on a thread of the server's process")
@@ -110,6 +119,18 @@ def engine_cpu_arg(value: str) -> int | None:
     return cpu
 
 
+#: Connections and requests uvicorn serves at once; beyond it answers 503 at once instead of queueing.
+MAX_CONNECTIONS = 512
+
+
+def _raise_open_file_limit() -> None:
+    """Let this process hold as many descriptors as the system allows it (the soft limit is often 1024), so
+    that a flood of connections is answered 503 by uvicorn instead of failing every accept()."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or hard > soft:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (hard if hard != resource.RLIM_INFINITY else max(soft, 65536), hard))
+
+
 def _say(text: str) -> None:
     print(text, flush=True)
 
@@ -150,11 +171,13 @@ def main(args: argparse.Namespace) -> int:
     api_port = sock.getsockname()[1]
     shown_host = f"[{args.host}]" if family == socket.AF_INET6 else args.host
     api_url = f"http://{shown_host}:{api_port}"
+    _raise_open_file_limit()
 
     import uvicorn
 
     from server.app import create_app
     from server.runstore import RunStore
+    from server.security import LOOPBACK_HOSTS
     from server.service import LabService
 
     devices = f"camera {config.devices.camera}, AWG {config.devices.awg}"
@@ -167,6 +190,8 @@ def main(args: argparse.Namespace) -> int:
         pause_s=args.pause,
         engine_factory=factory,
         config=config,
+        tone_dir=args.tone_dir,
+        shot_dir=args.shot_dir,
     )
     dashboard = None
     try:
@@ -175,13 +200,20 @@ def main(args: argparse.Namespace) -> int:
         if not args.no_dashboard:
             from frontend.dashboard import Dashboard
 
-            dashboard = Dashboard(service, host=args.host, port=args.dashboard_port, api_url=api_url)
+            dashboard = Dashboard(service, host=args.host, port=args.dashboard_port, api_url=api_url, token=token)
             dashboard_port = dashboard.start()
+        # Without a token the server is loopback-only, and answers only to loopback names (a page of another
+        # site cannot reach it by pointing a DNS name of its own at 127.0.0.1).
+        trusted = None if token is not None else (*LOOPBACK_HOSTS, args.host.strip("[]").lower())
         app = create_app(
-            service=service, token=token, cors_origins=tuple(args.cors_origin), dashboard_port=dashboard_port
+            service=service, token=token, cors_origins=tuple(args.cors_origin), trusted_hosts=trusted,
+            dashboard_port=dashboard_port,
         )
         server = uvicorn.Server(
-            uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=3, ws_ping_interval=20)
+            uvicorn.Config(
+                app, log_level="warning", timeout_graceful_shutdown=3, ws_ping_interval=20,
+                limit_concurrency=MAX_CONNECTIONS, timeout_keep_alive=5,
+            )
         )
         fault = service.status().reason
         if fault is not None:

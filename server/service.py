@@ -28,7 +28,9 @@ import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import Future
+from functools import partial
 from operator import methodcaller
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -38,6 +40,7 @@ from engine.config import SystemConfig, deep_merge
 from engine.process import EngineProcess, EngineProcessDied, shot_with_frame
 from engine.records import Outcome, ShotRecord
 from server.calibration import psf_calibration, threshold_calibration
+from server.files import confine, open_regular
 from server.models import DevicesOut, StatusOut, shot_summary
 from server.runstore import RunStore
 
@@ -46,11 +49,27 @@ if TYPE_CHECKING:
 
     EngineHost = EngineThread | EngineProcess
 
-__all__ = ["CalibrationConflict", "ConfigRejected", "DevicesUnavailable", "LabService", "NotArmed", "deep_merge"]
+__all__ = [
+    "CalibrationConflict",
+    "CalibrationFailed",
+    "ConfigRejected",
+    "DevicesUnavailable",
+    "LabService",
+    "NotArmed",
+    "UnknownCalibration",
+    "deep_merge",
+]
 
 
 #: GIL switch interval while a lab service runs (see ``LabService.start``).
 SWITCH_INTERVAL_S = 2e-4
+
+#: A tone CSV holds one short ``alpha,nu,phi`` line per trap (at most 1024 per axis: about 50 kB).
+MAX_TONE_FILE_BYTES = 256 * 2**10
+
+#: Frames one calibration may acquire, in bytes of uint16 pixels (each process holds them, and the fits
+#: make float copies): 40 frames of a 1024 x 1024 ROI fit, 500 frames of 4096 x 4096 do not.
+MAX_CALIBRATION_BYTES = 128 * 2**20
 
 
 def _devices_reason(err: BaseException) -> str:
@@ -101,6 +120,17 @@ class CalibrationConflict(RuntimeError):
     """A calibration cannot be applied: the configuration changed since its frames were taken."""
 
 
+class CalibrationFailed(RuntimeError):
+    """The calibration frames could not be fitted (e.g. no atoms were loaded in them)."""
+
+
+class UnknownCalibration(LookupError):
+    """No calibration with that id is held."""
+
+    def __str__(self) -> str:
+        return f"no calibration {self.args[0]!r}"
+
+
 def _validate(data: Any) -> SystemConfig:
     """Validate JSON-shaped ``data`` strictly: ``"lossless": 0`` or ``"max_cycles": "5"`` are refused, not coerced
     (a lab config is typed by a person; a silent coercion would hide a typo)."""
@@ -126,14 +156,24 @@ class LabService:
         history: int = 2000,
         engine_factory: Callable[[SystemConfig], EngineHost] | None = None,
         config: SystemConfig | None = None,
+        tone_dir: Path | None = None,
+        shot_dir: Path | None = None,
     ) -> None:
         """``engine_factory`` (with ``config``, the configuration ``engine_thread`` was built for) lets the
-        service survive devices that cannot be opened and re-open devices when ``devices`` changes."""
+        service survive devices that cannot be opened and re-open devices when ``devices`` changes.
+
+        ``tone_dir``: the directory tone CSVs named in a submitted configuration must lie in; ``shot_dir``:
+        the one labscript shot files must lie in (``None``: such files are refused; see ``server.files``)."""
         self._et: EngineHost | _NoEngine = engine_thread
         self._factory = engine_factory
         self._initial_config = config
         self._store = store
+        self.tone_dir = tone_dir
+        self.shot_dir = shot_dir
         self.pause_s = pause_s
+        # Shot ids come from here, not from the engine, so they keep increasing when devices are re-opened
+        # on a new engine (the run store and the API key shots by id).
+        self._shot_ids = itertools.count()
         self._lock = threading.Lock()  # serializes commands to the engine
         self._state_lock = threading.Lock()  # guards the fields below
         self._history: deque[ShotRecord] = deque(maxlen=history)
@@ -215,7 +255,7 @@ class LabService:
 
     def replace_config(self, config: SystemConfig | dict[str, Any]) -> SystemConfig:
         """Validate and apply a whole configuration between shots; on any error the running one stays."""
-        new = config if isinstance(config, SystemConfig) else _validate(config)
+        new = self._checked_files(config if isinstance(config, SystemConfig) else _validate(config))
         with self._lock:
             self._apply(new)
         return new
@@ -223,7 +263,7 @@ class LabService:
     def patch_config(self, patch: dict[str, Any]) -> SystemConfig:
         """Deep-merge ``patch`` into the running configuration, validate, apply (see ``replace_config``)."""
         with self._lock:
-            new = _validate(deep_merge(self.config.model_dump(mode="json"), patch))
+            new = self._checked_files(_validate(deep_merge(self.config.model_dump(mode="json"), patch)))
             self._apply(new)
         return new
 
@@ -300,7 +340,12 @@ class LabService:
             if not override:
                 return self._one_shot("one shot")
             base = self.config
-            special = _validate(deep_merge(base.model_dump(mode="json"), override))
+            special = self._checked_files(_validate(deep_merge(base.model_dump(mode="json"), override)))
+            if special.devices != base.devices:
+                raise ConfigRejected(
+                    [{"loc": ["body", "config", "devices"], "type": "override_devices",
+                      "msg": "a one-shot override cannot change the devices; change them with PUT or PATCH /api/config"}]
+                )
             self._apply(special, remember=False)
             try:
                 return self._one_shot("one shot (config override)")
@@ -313,6 +358,8 @@ class LabService:
         Returns None when the file's ``llrs_enabled`` global is false (the skip is written into the file).
         """
         from server.labscript import run_shot_file
+
+        path = str(confine(path, self.shot_dir, what="shot file", option="--shot-dir"))
 
         def run(config: SystemConfig | None) -> ShotRecord:
             return self.shot(override=config.model_dump(mode="json") if config is not None else None)
@@ -328,17 +375,30 @@ class LabService:
 
     def calibrate_threshold(self, *, images: int = 40) -> dict[str, Any]:
         """Acquire ``images`` frames and fit the occupancy threshold; kept under an id, not applied."""
-        with self._lock:
-            config = self.config
-            frames = self._acquire(images, f"calibrating the threshold ({images} frames)")
-        return self._keep_calibration(threshold_calibration(frames, config), config)
+        return self._calibrate("threshold", threshold_calibration, images)
 
     def calibrate_psf(self, *, images: int = 40) -> dict[str, Any]:
         """Acquire ``images`` frames and fit the PSF and trap lattice; kept under an id, not applied."""
+        return self._calibrate("PSF", psf_calibration, images)
+
+    def _calibrate(self, kind: str, fit: Callable[[np.ndarray, SystemConfig], dict[str, Any]], images: int) -> dict[str, Any]:
+        """Acquire ``images`` frames (at most ``MAX_CALIBRATION_BYTES`` of them) and fit; ``CalibrationFailed``
+        when the frames cannot be fitted."""
         with self._lock:
             config = self.config
-            frames = self._acquire(images, f"calibrating the PSF ({images} frames)")
-        return self._keep_calibration(psf_calibration(frames, config), config)
+            frame_bytes = 2 * config.camera.roi_width_px * config.camera.roi_height_px
+            if images * frame_bytes > MAX_CALIBRATION_BYTES:
+                raise ConfigRejected(
+                    [{"loc": ["body", "images"], "type": "too_many_frames",
+                      "msg": f"{images} frames of {frame_bytes} bytes exceed {MAX_CALIBRATION_BYTES} bytes; "
+                      f"ask for at most {MAX_CALIBRATION_BYTES // frame_bytes} frames with this ROI"}]
+                )
+            frames = self._acquire(images, f"calibrating the {kind} ({images} frames)")
+        try:
+            result = fit(frames, config)
+        except ValueError as err:
+            raise CalibrationFailed(f"{kind} calibration failed: {err}") from None
+        return self._keep_calibration(result, config)
 
     def calibrations(self) -> list[dict[str, Any]]:
         """Calibrations held (newest last)."""
@@ -348,14 +408,14 @@ class LabService:
     def apply_calibration(self, calibration_id: str) -> dict[str, Any]:
         """Put a calibration's values into the running configuration (applied between shots).
 
-        ``KeyError``: no such id. ``CalibrationConflict``: the configuration changed since its frames were
+        ``UnknownCalibration``: no such id. ``CalibrationConflict``: the configuration changed since its frames were
         taken (calibrate again). Applying one that is already applied changes nothing.
         """
         with self._lock:
             with self._state_lock:
                 cal = self._calibrations.get(calibration_id)
                 if cal is None:
-                    raise KeyError(calibration_id)
+                    raise UnknownCalibration(calibration_id)
                 if cal["applied"]:
                     return dict(cal)
             if cal["config_digest"] != self.config.digest():
@@ -491,26 +551,51 @@ class LabService:
         with self._state_lock:
             self._fault = None
 
+    def _checked_files(self, config: SystemConfig) -> SystemConfig:
+        """``config`` with each tone CSV that differs from the running configuration's checked (inside
+        ``tone_dir``, a regular file, at most ``MAX_TONE_FILE_BYTES``) and named by its resolved path, so the
+        engine reads exactly the file checked here. A CSV already running was put there by the operator."""
+        running = self._config.array if self._config is not None else None
+        changes: dict[str, Any] = {}
+        for axis in ("x_tones", "y_tones"):
+            csv = getattr(config.array, axis).csv
+            if csv is None or (running is not None and csv == getattr(running, axis).csv):
+                continue
+            try:
+                path = confine(csv, self.tone_dir, what="tone file", option="--tone-dir")
+                open_regular(path, what="tone file", max_bytes=MAX_TONE_FILE_BYTES).close()
+            except (ValueError, FileNotFoundError) as err:
+                msg = str(err) if not isinstance(err, FileNotFoundError) else f"tone file {csv!r}: no such file"
+                raise ConfigRejected([{"loc": ["body", "array", axis, "csv"], "msg": msg, "type": "file_refused"}]) from None
+            changes[axis] = getattr(config.array, axis).model_copy(update={"csv": str(path)})
+        if not changes:
+            return config
+        return config.model_copy(update={"array": config.array.model_copy(update=changes)})
+
     def _apply(self, config: SystemConfig, *, remember: bool = True) -> None:
-        """Apply on the engine (between shots); raise ``ConfigRejected`` if the engine refuses it.
+        """Apply on the engine (between shots); raise ``ConfigRejected`` if the engine refuses it, for whatever
+        reason (an overflow in a model, an unreadable tone file): the running configuration then stays.
 
         With an engine factory, a change of ``devices`` (or devices that failed to open before) re-opens the
-        devices on a new engine host; if they do not open, the running engine and config stay."""
-        if self._store is not None:
-            self._store.note_config(config)
+        devices on a new engine host; if they do not open, the running engine and config stay. The run store
+        learns a configuration only once the engine runs it."""
         self._notice_dead_engine()
         reopen = isinstance(self._et, _NoEngine) or (
             self._factory is not None and self._config is not None and config.devices != self._config.devices
         )
         if reopen and self._factory is not None:
             self._reopen(config)
-            if remember:
-                self._config = config
-            return
-        try:
-            self._call(methodcaller("apply", config))
-        except (ValueError, KeyError, NotImplementedError) as err:
-            raise ConfigRejected([{"loc": ["body"], "msg": f"{type(err).__name__}: {err}", "type": "engine_refused"}]) from None
+        else:
+            try:
+                self._call(methodcaller("apply", config))
+            except DevicesUnavailable:
+                raise
+            except Exception as err:
+                text = f"{type(err).__name__}: {err}"
+                text = text if len(text) <= 500 else text[:500] + "..."
+                raise ConfigRejected([{"loc": ["body"], "msg": text, "type": "engine_refused"}]) from None
+        if self._store is not None:
+            self._store.note_config(config)
         if remember:
             self._config = config
 
@@ -559,7 +644,7 @@ class LabService:
         """One shot on the engine, then the bookkeeping and the listeners on this (the caller's) thread."""
         done = self._busy(what)
         try:
-            record, frame = self._call(shot_with_frame)
+            record, frame = self._call(partial(shot_with_frame, shot_id=next(self._shot_ids)))
         finally:
             done()
         self._on_shot(record, frame)

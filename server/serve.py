@@ -61,6 +61,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # t
     p.add_argument("--idle", action="store_true", help="do not start shots at once; wait for a command")
     p.add_argument("--no-dashboard", action="store_true", help="serve the API only")
     p.add_argument("--cors-origin", action="append", default=[], help="allow browsers on this origin to call the API (repeatable)")
+    p.add_argument("--trusted-host", action="append", default=[],
+                   help="a Host name the server answers to (repeatable); without a token only loopback names are "
+                   "answered, with a token any unless these are given")
     p.add_argument("--tone-dir", type=Path, default=None,
                    help="directory that tone CSVs (array.*_tones.csv) named in configurations sent to the API must "
                    "lie in (default: none, so the API accepts no new tone file)")
@@ -204,7 +207,9 @@ def main(args: argparse.Namespace) -> int:
             dashboard_port = dashboard.start()
         # Without a token the server is loopback-only, and answers only to loopback names (a page of another
         # site cannot reach it by pointing a DNS name of its own at 127.0.0.1).
-        trusted = None if token is not None else (*LOOPBACK_HOSTS, args.host.strip("[]").lower())
+        trusted: tuple[str, ...] | None = (*LOOPBACK_HOSTS, args.host.strip("[]").lower(), *args.trusted_host)
+        if token is not None and not args.trusted_host:
+            trusted = None
         app = create_app(
             service=service, token=token, cors_origins=tuple(args.cors_origin), trusted_hosts=trusted,
             dashboard_port=dashboard_port,

@@ -212,6 +212,11 @@ class LoopConfig(_Model):
 
     max_cycles: Annotated[int, Field(ge=1, le=100)] = 5
     trigger: Literal["software", "hardware"] = "software"
+    watchdog_factor: Annotated[float, Field(ge=1, le=1000)] = Field(
+        default=4.0,
+        description="a shot running longer than this multiple of the longest healthy shot (every cycle's frame "
+        "at camera.timeout_s, the longest plan the AWG holds uploaded and played) ends as a fault, atoms held",
+    )
 
 
 class FaultConfig(_Model):

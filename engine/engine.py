@@ -28,7 +28,7 @@ from engine.targets import build_target, target_filled
 from engine.timing import StageTimer
 from engine.waveforms import WaveformBank
 
-__all__ = ["Engine", "EngineThread", "InjectedSolverFault", "Lab"]
+__all__ = ["Engine", "EngineThread", "InjectedSolverFault", "Lab", "ShotWatchdogExpired"]
 
 
 class Lab(Protocol):
@@ -44,6 +44,10 @@ class Lab(Protocol):
     def prepare_shot(self) -> None: ...
 
     def ground_truth(self) -> np.ndarray: ...
+
+
+class ShotWatchdogExpired(RuntimeError):
+    """A shot ran past its watchdog (``Engine.shot_watchdog_s``): it ends as a fault with the atoms held."""
 
 
 class InjectedSolverFault(Exception):
@@ -155,10 +159,26 @@ class Engine:
         pipeline.streamer.program_idle()
         dev.awg.start(pipeline.streamer.layout.idle_step)
 
-    def run_shot(self, shot_id: int | None = None) -> ShotRecord:
-        """Run one shot: load (simulated lab), then cycles until success, unsolvable or max_cycles."""
+    def shot_watchdog_s(self) -> float:
+        """How long a shot may run before it is ended as a fault: ``loop.watchdog_factor`` times the longest a
+        healthy shot takes (each cycle: an exposure, a frame read up to ``camera.timeout_s``, and the longest
+        plan the AWG layout holds, uploaded and played). Checked after every cycle, so a device that keeps
+        being slow (late uploads, a slow camera) cannot hold the engine, and the commands waiting for it, for
+        minutes."""
         p = self._p
         assert p is not None
+        cfg = p.config
+        slot_bytes = 2 * p.bank.slot_samples * p.bank.n_channels
+        plan_s = p.streamer.max_slots * (cfg.waveforms.slot_duration_s + slot_bytes / cfg.awg.upload_bytes_per_s)
+        cycle_s = cfg.camera.exposure_s + cfg.camera.timeout_s + plan_s
+        return cfg.loop.watchdog_factor * (cfg.loop.max_cycles + 1) * cycle_s
+
+    def run_shot(self, shot_id: int | None = None) -> ShotRecord:
+        """Run one shot: load (simulated lab), then cycles until success, unsolvable or max_cycles (or a fault,
+        the watchdog's included)."""
+        p = self._p
+        assert p is not None
+        watchdog_s = self.shot_watchdog_s()
         shot_id = self.shots_done if shot_id is None else shot_id
         record = ShotRecord(
             shot_id=shot_id, config_digest=p.config.digest(), algorithm=p.config.solver.algorithm, target=p.target
@@ -182,6 +202,12 @@ class Engine:
                 if outcome is not None:
                     record.outcome = outcome
                     break
+                elapsed_s = clock.now_s() - record.t_start_s
+                if elapsed_s > watchdog_s:
+                    raise ShotWatchdogExpired(
+                        f"watchdog: the shot ran {elapsed_s:.3g} s after {cycle + 1} cycles, over its "
+                        f"{watchdog_s:.3g} s limit (loop.watchdog_factor x the longest healthy shot); atoms held"
+                    )
         except Exception as err:  # a device, the solver or a bug: the shot ends, the engine lives on
             record.outcome = Outcome.FAULT
             record.fault = f"{type(err).__name__}: {err}"

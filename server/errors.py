@@ -19,6 +19,7 @@ from server.service import (
     CalibrationFailed,
     ConfigRejected,
     DevicesUnavailable,
+    EngineBusy,
     NotArmed,
     UnknownCalibration,
 )
@@ -38,6 +39,7 @@ STATUS_OF: dict[type[Exception], tuple[int, str]] = {
     ShotFileError: (422, "a shot file that cannot be used (not labscript, bad llrs_ globals)"),
     FileRefused: (422, "a file path outside the configured directories, not a regular file, or too big"),
     DevicesUnavailable: (503, "the configured devices could not be opened"),
+    EngineBusy: (503, "the engine stayed busy longer than a command may wait; nothing was done"),
     DeviceError: (503, "a device failed"),
 }
 

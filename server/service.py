@@ -26,7 +26,8 @@ import json
 import sys
 import threading
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from concurrent.futures import Future
 from functools import partial
 from operator import methodcaller
@@ -54,6 +55,7 @@ __all__ = [
     "CalibrationFailed",
     "ConfigRejected",
     "DevicesUnavailable",
+    "EngineBusy",
     "LabService",
     "NotArmed",
     "UnknownCalibration",
@@ -63,6 +65,10 @@ __all__ = [
 
 #: GIL switch interval while a lab service runs (see ``LabService.start``).
 SWITCH_INTERVAL_S = 2e-4
+
+#: How long a command waits for the engine (a shot or calibration in progress) before it is refused: a
+#: request must not wait for minutes and then act long after its client gave up.
+COMMAND_WAIT_S = 30.0
 
 #: A tone CSV holds one short ``alpha,nu,phi`` line per trap (at most 1024 per axis: about 50 kB).
 MAX_TONE_FILE_BYTES = 256 * 2**10
@@ -114,6 +120,10 @@ class _NoEngine:
 
     def close(self) -> None:
         pass
+
+
+class EngineBusy(RuntimeError):
+    """The engine stayed busy (a shot, a calibration) for longer than a command may wait; nothing was done."""
 
 
 class CalibrationConflict(RuntimeError):
@@ -256,13 +266,13 @@ class LabService:
     def replace_config(self, config: SystemConfig | dict[str, Any]) -> SystemConfig:
         """Validate and apply a whole configuration between shots; on any error the running one stays."""
         new = self._checked_files(config if isinstance(config, SystemConfig) else _validate(config))
-        with self._lock:
+        with self._engine_turn():
             self._apply(new)
         return new
 
     def patch_config(self, patch: dict[str, Any]) -> SystemConfig:
         """Deep-merge ``patch`` into the running configuration, validate, apply (see ``replace_config``)."""
-        with self._lock:
+        with self._engine_turn():
             new = self._checked_files(_validate(deep_merge(self.config.model_dump(mode="json"), patch)))
             self._apply(new)
         return new
@@ -327,7 +337,7 @@ class LabService:
 
         Raises ``NotArmed`` otherwise. Triggers are serialized like every shot.
         """
-        with self._lock:
+        with self._engine_turn():
             self._take_trigger()
             return self._one_shot("triggered shot")
 
@@ -336,7 +346,7 @@ class LabService:
 
         ``override`` is a partial configuration deep-merged into the running one for this shot only.
         """
-        with self._lock:
+        with self._engine_turn():
             if not override:
                 return self._one_shot("one shot")
             base = self.config
@@ -370,7 +380,7 @@ class LabService:
 
     def acquire_images(self, n: int) -> np.ndarray:
         """``uint16[n, h, w]`` fresh frames from the engine's camera (between shots)."""
-        with self._lock:
+        with self._engine_turn():
             return self._acquire(n, "acquiring frames")
 
     def calibrate_threshold(self, *, images: int = 40) -> dict[str, Any]:
@@ -384,7 +394,7 @@ class LabService:
     def _calibrate(self, kind: str, fit: Callable[[np.ndarray, SystemConfig], dict[str, Any]], images: int) -> dict[str, Any]:
         """Acquire ``images`` frames (at most ``MAX_CALIBRATION_BYTES`` of them) and fit; ``CalibrationFailed``
         when the frames cannot be fitted."""
-        with self._lock:
+        with self._engine_turn():
             config = self.config
             frame_bytes = 2 * config.camera.roi_width_px * config.camera.roi_height_px
             if images * frame_bytes > MAX_CALIBRATION_BYTES:
@@ -411,7 +421,7 @@ class LabService:
         ``UnknownCalibration``: no such id. ``CalibrationConflict``: the configuration changed since its frames were
         taken (calibrate again). Applying one that is already applied changes nothing.
         """
-        with self._lock:
+        with self._engine_turn():
             with self._state_lock:
                 cal = self._calibrations.get(calibration_id)
                 if cal is None:
@@ -510,6 +520,18 @@ class LabService:
             return self._last_frame
 
     # -- internals --------------------------------------------------------------------------------------------
+
+    @contextmanager
+    def _engine_turn(self) -> Iterator[None]:
+        """The engine lock for one command, waited for at most ``COMMAND_WAIT_S`` (``EngineBusy`` then)."""
+        if not self._lock.acquire(timeout=COMMAND_WAIT_S):
+            with self._state_lock:
+                doing = ", ".join(self._activity) or "a command"
+            raise EngineBusy(f"the engine has been busy ({doing}) for over {COMMAND_WAIT_S:g} s; nothing was done, try again")
+        try:
+            yield
+        finally:
+            self._lock.release()
 
     def _require_engine(self) -> None:
         self._notice_dead_engine()

@@ -280,3 +280,31 @@ def test_dashboard_is_read_only_until_logged_in(lab: LabService) -> None:
         assert lab.status().shots_done == 1
     finally:
         dashboard.stop()
+
+
+def test_a_command_waits_for_a_busy_engine_only_so_long(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A PATCH stuck behind a long shot is refused after COMMAND_WAIT_S, and is not applied afterwards."""
+    import threading
+
+    import server.service
+
+    monkeypatch.setattr(server.service, "COMMAND_WAIT_S", 0.2)
+    service = LabService(
+        engine_thread=EngineThread(lambda: FakeEngine(example_config(), shot_s=1.0)),  # type: ignore[arg-type, return-value]
+        pause_s=0.0,
+    ).start()
+    try:
+        with TestClient(create_app(service=service)) as c:
+            shot = threading.Thread(target=service.shot)
+            shot.start()
+            deadline = time.monotonic() + 5
+            while service.status().activity is None:
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            before = service.config
+            r = c.patch("/api/config", json={"loop": {"max_cycles": 2}})
+            assert r.status_code == 503 and "busy" in r.text and "one shot" in r.text
+            shot.join()
+            assert service.config == before
+    finally:
+        service.close()

@@ -231,7 +231,11 @@ class FaultConfig(_Model):
     )
     awg_upload: Literal["none", "fail"] = Field(default="none", description="every segment upload fails")
     upload_delay_s: Annotated[float, Field(ge=0, le=1)] = Field(
-        default=0.0, description="extra time added to every segment upload (late uploads cause underruns)"
+        default=0.0,
+        description="extra time added to every segment upload: plans streamed through more than two segments "
+        "underrun (the card holds in the failsafe until the data arrives); a plan that fits the short path is "
+        "uploaded before it starts, so there the delay shows as IV.upload time; over the streamer's 1 s upload "
+        "timeout it is a device fault",
     )
     solver: Literal["none", "exception"] = Field(
         default="none", description="the planner raises an unexpected exception (a bug) in every solve"

@@ -19,6 +19,7 @@ import numpy as np
 
 from engine.config import SystemConfig
 from engine.devices import DeviceError, DeviceSet
+from engine.host import EngineCommands
 from engine.imaging import Detector
 from engine.operations import Plan
 from engine.records import CycleRecord, Outcome, ShotRecord
@@ -244,6 +245,12 @@ class Engine:
         self.shots_done += 1
         return record
 
+    @property
+    def has_trigger_input(self) -> bool:
+        """Whether the AWG has a trigger input the engine can wait on (the devices answer: only an AWG with
+        ``wait_trigger`` has one)."""
+        return hasattr(self.devices.awg, "wait_trigger")
+
     def wait_trigger(self, *, timeout_s: float) -> bool:
         """Between shots, armed on ``loop.trigger: hardware``: wait for the sequencer's trigger line at the AWG.
 
@@ -351,21 +358,20 @@ class Engine:
         return self._p.image.copy()
 
 
-class EngineThread:
-    """Owns an ``Engine`` on a dedicated thread; other threads send it commands and get futures back.
+class EngineThread(EngineCommands):
+    """Owns an ``Engine`` on a dedicated thread; other threads send it commands and get futures back
+    (``engine.host.EngineHost``).
 
     Commands run strictly one after another, so two callers asking for a shot at once are serialized.
-    ``run_continuous`` keeps running shots until ``stop`` (or another command) arrives.
     """
+
+    shares_interpreter = True
 
     def __init__(self, build: Callable[[], Engine], *, name: str = "llrs-engine") -> None:
         self._build = build
         self._commands: queue.Queue[tuple[Callable[[Engine], Any], Future[Any]] | None] = queue.Queue()
-        self._continuous = threading.Event()
         self._ready = threading.Event()
-        self._listeners: list[Callable[[ShotRecord], None]] = []
         self._error: BaseException | None = None
-        self.last_error: Exception | None = None  # why continuous shots stopped by themselves, if they did
         self.engine: Engine | None = None
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
@@ -381,6 +387,9 @@ class EngineThread:
     def __enter__(self) -> EngineThread:
         return self.start()
 
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     @property
     def config(self) -> SystemConfig | None:
         """The engine's configuration (``None`` before ``start``)."""
@@ -388,47 +397,32 @@ class EngineThread:
 
     @property
     def has_trigger_input(self) -> bool:
-        """Whether the engine can wait for a hardware trigger (``Engine.wait_trigger``)."""
-        return hasattr(self.engine, "wait_trigger")
+        """Whether the engine's devices can wait for a hardware trigger (``Engine.has_trigger_input``)."""
+        return self.engine is not None and self.engine.has_trigger_input
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive() and self.engine is not None
 
-    def add_listener(self, callback: Callable[[ShotRecord], None]) -> None:
-        """``callback(record)`` runs on the engine thread after every shot; keep it short and non-blocking."""
-        self._listeners.append(callback)
+    @property
+    def exit_reason(self) -> str | None:
+        if self.alive or not self._ready.is_set():
+            return None
+        return "the engine thread has stopped" if self._error is None else f"the engine failed to start: {self._error}"
 
     def submit(self, command: Callable[[Engine], Any]) -> Future[Any]:
         future: Future[Any] = Future()
-        self._continuous.clear()
         self._commands.put((command, future))
         return future
 
     def run_shots(self, n: int) -> Future[list[ShotRecord]]:
-        return self.submit(lambda engine: [self._shot(engine) for _ in range(n)])
-
-    def run_continuous(self) -> None:
-        self._continuous.set()
-        self._commands.put((lambda engine: None, Future()))
-
-    def stop(self) -> None:
-        self._continuous.clear()
-
-    @property
-    def running_continuously(self) -> bool:
-        return self._continuous.is_set()
+        """``n`` shots one after another, numbered by the engine (``llrs run``)."""
+        return self.submit(lambda engine: [engine.run_shot() for _ in range(n)])
 
     def close(self) -> None:
-        self._continuous.clear()
         if self._thread.is_alive():
             self._commands.put(None)
             self._thread.join(timeout=10)
-
-    def _shot(self, engine: Engine) -> ShotRecord:
-        record = engine.run_shot()
-        for listener in self._listeners:
-            listener(record)
-        return record
 
     def _run(self) -> None:
         try:
@@ -440,13 +434,6 @@ class EngineThread:
         self._ready.set()
         engine = self.engine
         while True:
-            if self._continuous.is_set() and self._commands.empty():
-                try:
-                    self._shot(engine)
-                except Exception as err:  # a listener failed: stop running, keep the thread alive
-                    self._continuous.clear()
-                    self.last_error = err
-                continue
             item = self._commands.get()
             if item is None:
                 break

@@ -1,7 +1,7 @@
 """The lab service: the one command interface the REST API and the dashboard both drive.
 
-It wraps an engine host, an ``EngineThread`` or an ``EngineProcess`` (``engine.process``: the engine in its
-own process, on its own core, which is how ``llrs serve`` runs it), and adds what a lab server needs around it:
+It wraps an engine host (``engine.host.EngineHost``: an ``EngineThread``, or an ``EngineProcess``, the engine
+in its own process on its own core, which is how ``llrs serve`` runs it), and adds what a lab server needs around it:
 continuous shots with a pause between them, one-off shots with a per-shot configuration, validated config
 changes applied between shots, the shot history in memory and on disk, and listeners for live data.
 
@@ -29,26 +29,20 @@ from collections import OrderedDict, deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from concurrent.futures import Future
-from functools import partial
-from operator import methodcaller
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
 
 from engine.config import SystemConfig, deep_merge
-from engine.process import EngineProcess, EngineProcessDied, shot_with_frame
+from engine.host import EngineCommands, EngineHost
+from engine.process import EngineProcessDied
 from engine.records import Outcome, ShotRecord
 from server.calibration import psf_calibration, threshold_calibration
 from server.files import confine, open_regular
 from server.models import DevicesOut, StatusOut, shot_summary
 from server.runstore import RunStore
-
-if TYPE_CHECKING:
-    from engine.engine import EngineThread
-
-    EngineHost = EngineThread | EngineProcess
 
 __all__ = [
     "CalibrationConflict",
@@ -102,20 +96,24 @@ class DevicesUnavailable(RuntimeError):
     runs no shot until a configuration whose devices open is applied."""
 
 
-class _NoEngine:
-    """Stands in for the engine while the devices cannot be opened (or its process died): every command
-    says why."""
+class _NoEngine(EngineCommands):
+    """An ``EngineHost`` that stands in for the engine while the devices cannot be opened (or its process
+    died): every command says why."""
 
     config = None
     has_trigger_input = False
     alive = False
+    shares_interpreter = False
 
     def __init__(self, reason: str) -> None:
-        self.reason = reason
+        self.exit_reason = reason
+
+    def start(self) -> _NoEngine:
+        raise DevicesUnavailable(self.exit_reason)
 
     def submit(self, command: Callable[[Any], Any]) -> Future[Any]:
         future: Future[Any] = Future()
-        future.set_exception(DevicesUnavailable(self.reason))
+        future.set_exception(DevicesUnavailable(self.exit_reason))
         return future
 
     def close(self) -> None:
@@ -174,7 +172,7 @@ class LabService:
 
         ``tone_dir``: the directory tone CSVs named in a submitted configuration must lie in; ``shot_dir``:
         the one labscript shot files must lie in (``None``: such files are refused; see ``server.files``)."""
-        self._et: EngineHost | _NoEngine = engine_thread
+        self._et: EngineHost = engine_thread
         self._factory = engine_factory
         self._initial_config = config
         self._store = store
@@ -215,16 +213,16 @@ class LabService:
         # GIL waits up to the switch interval (5 ms by default) for the holder to let go, so request handling
         # could add milliseconds to a cycle; 0.2 ms bounds that wait at a small cost in throughput. An engine
         # process has an interpreter of its own.
-        if not isinstance(self._et, EngineProcess):
+        if self._et.shares_interpreter:
             sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
         try:
-            self._et.start()  # type: ignore[union-attr]
+            self._et.start()
         except Exception as err:
             if self._factory is None or self._initial_config is None:
                 raise
             self._et = _NoEngine(_devices_reason(err))
             self._config = self._initial_config
-            self._fault = self._et.reason
+            self._fault = self._et.exit_reason
         else:
             self._config = self._et.config
         if self._store is not None:
@@ -536,22 +534,22 @@ class LabService:
     def _require_engine(self) -> None:
         self._notice_dead_engine()
         if isinstance(self._et, _NoEngine):
-            raise DevicesUnavailable(self._et.reason)
+            raise DevicesUnavailable(self._et.exit_reason or "no engine")
 
-    def _call(self, command: Callable[[Any], Any]) -> Any:
-        """``command(engine)`` on the engine, waited for; an engine process that died says so as
-        ``DevicesUnavailable`` (503 over REST) rather than as an internal error."""
+    def _wait(self, future: Future[Any]) -> Any:
+        """The result of an engine command; an engine process that died says so as ``DevicesUnavailable``
+        (503 over REST) rather than as an internal error."""
         try:
-            return self._et.submit(command).result()
+            return future.result()
         except EngineProcessDied:
             self._notice_dead_engine()
-            raise DevicesUnavailable(getattr(self._et, "reason", "the engine process died")) from None
+            raise DevicesUnavailable(self._et.exit_reason or "the engine process died") from None
 
     def _notice_dead_engine(self) -> None:
         """An engine process that died becomes a ``_NoEngine`` with its reason: the server reports it and a
         configuration applied later starts a new engine (``_apply`` re-opens)."""
-        if not isinstance(self._et, _NoEngine) and not getattr(self._et, "alive", True):
-            reason = getattr(self._et, "exit_reason", None) or "the engine process is gone"
+        if not isinstance(self._et, _NoEngine) and not self._et.alive:
+            reason = self._et.exit_reason or "the engine is gone"
             reason += "; apply a configuration (PUT /api/config) to start a new engine"
             self._et.close()
             self._et = _NoEngine(reason)
@@ -609,7 +607,7 @@ class LabService:
             self._reopen(config)
         else:
             try:
-                self._call(methodcaller("apply", config))
+                self._wait(self._et.configure(config))
             except DevicesUnavailable:
                 raise
             except Exception as err:
@@ -644,7 +642,7 @@ class LabService:
     def _acquire(self, n: int, what: str) -> np.ndarray:
         done = self._busy(what)
         try:
-            frames = self._call(methodcaller("acquire_images", n))
+            frames = self._wait(self._et.acquire_images(n))
         finally:
             done()
         return np.asarray(frames)
@@ -666,7 +664,7 @@ class LabService:
         """One shot on the engine, then the bookkeeping and the listeners on this (the caller's) thread."""
         done = self._busy(what)
         try:
-            record, frame = self._call(partial(shot_with_frame, shot_id=next(self._shot_ids)))
+            record, frame = self._wait(self._et.run_shot(next(self._shot_ids)))
         finally:
             done()
         self._on_shot(record, frame)
@@ -699,7 +697,7 @@ class LabService:
 
     def _wait_hardware_trigger(self) -> bool:
         """Armed on a hardware trigger: wait a little for the line on the engine; True if it fired."""
-        fired = self._call(methodcaller("wait_trigger", timeout_s=0.2))
+        fired = self._wait(self._et.wait_trigger(timeout_s=0.2))
         return bool(fired)
 
     def _run_loop(self) -> None:

@@ -63,6 +63,8 @@ class FakeEngine:
         self._guard = threading.Lock()
         self.apply(config)
 
+    has_trigger_input = False  # like an AWG without a trigger line
+
     def apply(self, config: SystemConfig) -> None:
         if config.solver.algorithm == "refuse":
             raise ValueError("unknown solver algorithm 'refuse'")

@@ -233,7 +233,9 @@ def main(args: argparse.Namespace) -> int:
             f", pinned to core {args.engine_cpu} (the server keeps the others)" if args.engine_cpu is not None else "")
         _say(f"  engine      {where}")
         _say(f"  run files   {Path(args.runs_dir).resolve()}/")
-        _say(f"  token       {'required on mutating routes (LLRS_TOKEN)' if token else 'none (loopback only)'}")
+        _say(f"  tone files  {f'{args.tone_dir.resolve()}/ (--tone-dir)' if args.tone_dir else 'none accepted over the API (--tone-dir)'}")
+        _say(f"  shot files  {f'{args.shot_dir.resolve()}/ (--shot-dir)' if args.shot_dir else 'none accepted (--shot-dir)'}")
+        _say(f"  token       {'required on mutating routes and the dashboard controls (LLRS_TOKEN)' if token else 'none (loopback only)'}")
         _say(f"  shots       {'idle: POST /api/run or the dashboard starts them' if args.idle else 'running continuously'}")
         _say("Ctrl-C stops the server.")
         # uvicorn handles Ctrl-C/SIGTERM while it serves, then re-raises the signal it caught once it has

@@ -89,7 +89,7 @@ async def open_websockets(url: str, n: int) -> list[int]:
             writer.write(handshake)
             line = await asyncio.wait_for(reader.readline(), 20)
             return int(line.split(b" ")[1]), writer
-        except (OSError, asyncio.TimeoutError, IndexError, ValueError):
+        except (OSError, TimeoutError, IndexError, ValueError):
             return 0, None
 
     results = await asyncio.gather(*(one() for _ in range(n)))

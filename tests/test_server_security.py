@@ -7,12 +7,11 @@ import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from types import SimpleNamespace
 
 import h5py
-import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
 
 from engine.config import SystemConfig
 from engine.engine import EngineThread
@@ -173,7 +172,7 @@ def test_token_is_checked_before_the_body_is_read(lab: LabService) -> None:
 def test_live_subscribers_are_capped(lab: LabService) -> None:
     with TestClient(create_app(service=lab, max_live=2)) as c:
         with c.websocket_connect("/api/live"), c.websocket_connect("/api/live"):
-            with pytest.raises(Exception):  # refused at the handshake
+            with pytest.raises(WebSocketDisconnect):  # refused at the handshake
                 with c.websocket_connect("/api/live"):
                     pass
         with c.websocket_connect("/api/live"):  # a slot is free again once one left

@@ -216,11 +216,11 @@ class Dashboard:
         self._scene_key: tuple[int, ...] | None = None
         self.sc_atoms: Any = None
 
-        self.b_run.on_click(lambda event: self._allowed(event) and self._command("run", self.service.run))
-        self.b_stop.on_click(lambda event: self._allowed(event) and self._command("stop", self.service.stop))
-        self.b_once.on_click(lambda event: self._allowed(event) and self._command("one shot", self.service.shot))
-        self.b_problem.on_click(lambda event: self._allowed(event) and self._apply(self._problem_patch(), "problem"))
-        self.b_sim.on_click(lambda event: self._allowed(event) and self._apply(self._sim_patch(), "simulation"))
+        self.b_run.on_click(self._guarded(lambda: self._command("run", self.service.run)))
+        self.b_stop.on_click(self._guarded(lambda: self._command("stop", self.service.stop)))
+        self.b_once.on_click(self._guarded(lambda: self._command("one shot", self.service.shot)))
+        self.b_problem.on_click(self._guarded(lambda: self._apply(self._problem_patch(), "problem")))
+        self.b_sim.on_click(self._guarded(lambda: self._apply(self._sim_patch(), "simulation")))
         for field in (self.d_algorithm, self.d_target, self.n_max_cycles, self.s_loading, self.s_transfer,
                       self.s_step, self.c_lossless):
             field.on_update(self._put_back_unless_allowed)
@@ -235,6 +235,15 @@ class Dashboard:
         self._say("read-only: log in with the server's token (LLRS_TOKEN) to run shots or change the configuration",
                   error=True)
         return False
+
+    def _guarded(self, action: Callable[[], None]) -> Callable[[Any], None]:
+        """A click handler that runs ``action`` only for a client allowed to change things."""
+
+        def on_click(event: Any) -> None:
+            if self._allowed(event):
+                action()
+
+        return on_click
 
     def _put_back_unless_allowed(self, event: Any) -> None:
         """A field moved by a client that may not change things goes back to the running configuration (the

@@ -177,7 +177,7 @@ def _read_tone_csv(path: str, axis: str, n: int) -> tuple[np.ndarray, np.ndarray
             if missing:
                 raise ConfigError(
                     f"{where} {path}: needs columns alpha,nu,phi (amplitude fraction, Hz, rad); "
-                    f"missing {','.join(missing)} (header: {','.join(cols) or 'empty'})"
+                    f"missing {','.join(missing)} in its first line"
                 )
             reader.fieldnames = cols
             rows = []
@@ -185,9 +185,8 @@ def _read_tone_csv(path: str, axis: str, n: int) -> tuple[np.ndarray, np.ndarray
                 try:
                     rows.append((float(rec["alpha"]), float(rec["nu"]), float(rec["phi"])))
                 except (TypeError, ValueError):
-                    raise ConfigError(
-                        f"{where} {path} line {line}: alpha, nu and phi must be numbers (got "
-                        f"{rec.get('alpha')!r}, {rec.get('nu')!r}, {rec.get('phi')!r})"
+                    raise ConfigError(  # the file's text is not quoted: it could be any file's
+                        f"{where} {path} line {line}: alpha, nu and phi must be numbers"
                     ) from None
     except OSError as err:
         raise ConfigError(f"{where}: cannot read tone file {path}: {err.strerror or err}") from None

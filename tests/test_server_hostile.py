@@ -41,6 +41,9 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, subp
     (tmp / "tones").mkdir()
     (tmp / "shots").mkdir()
     os.mkfifo(tmp / "tones" / "fifo.csv")
+    (tmp / "tones" / "header.csv").write_text("secret-header-cell,nu,phi\n1,2,3\n")
+    (tmp / "tones" / "cells.csv").write_text("alpha,nu,phi\n" + "secret-cell,80e6,0\n" * 64)
+    (tmp / "tones" / "long-line.csv").write_text("alpha,nu,phi\n" + "9" * 200_000 + "\n")
     os.mkfifo(tmp / "shots" / "fifo.h5")
     env = dict(os.environ, LLRS_TOKEN=TOKEN)
     proc = subprocess.Popen(
@@ -132,9 +135,10 @@ def test_hostile_client(server: tuple[str, subprocess.Popen[str], Path]) -> None
         assert c.post("/api/shots", headers={**AUTH, "Origin": "http://evil.example"}).status_code == 403
         assert c.put("/api/config", content=b"{}", headers={**AUTH, "Content-Type": "text/plain"}).status_code == 415
         # special files as paths
-        for csv in ("/proc/self/environ", "/dev/zero", "fifo.csv", "/etc/passwd"):
+        for csv in ("/proc/self/environ", "/dev/zero", "fifo.csv", "/etc/passwd", "header.csv", "cells.csv", "long-line.csv"):
             r = c.patch("/api/config", json={"array": {"x_tones": {"csv": csv}}}, headers=AUTH)
-            assert r.status_code == 422 and TOKEN not in r.text and "root:" not in r.text, r.text
+            assert r.status_code == 422, r.text
+            assert TOKEN not in r.text and "root:" not in r.text and "secret" not in r.text and "999" not in r.text, r.text
         for path in ("fifo.h5", "/dev/zero", "/proc/self/environ"):
             r = c.post("/api/labscript", json={"path": path}, headers=AUTH)
             assert 400 <= r.status_code < 500 and TOKEN not in r.text, r.text

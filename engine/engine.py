@@ -419,10 +419,12 @@ class EngineThread(EngineCommands):
         """``n`` shots one after another, numbered by the engine (``llrs run``)."""
         return self.submit(lambda engine: [engine.run_shot() for _ in range(n)])
 
-    def close(self) -> None:
+    def close(self, *, timeout_s: float = 10.0) -> None:
+        """Finish the command in progress and close the devices; a thread stuck in a command for longer than
+        ``timeout_s`` is left behind (a thread cannot be killed)."""
         if self._thread.is_alive():
             self._commands.put(None)
-            self._thread.join(timeout=10)
+            self._thread.join(timeout=timeout_s)
 
     def _run(self) -> None:
         try:

@@ -64,8 +64,9 @@ class EngineHost(Protocol):
         """Build the engine (compiling every kernel); raises what the build raised."""
         ...
 
-    def close(self) -> None:
-        """Finish the command in progress, close the devices, end the thread or process."""
+    def close(self, *, timeout_s: float = 10.0) -> None:
+        """Finish the command in progress, close the devices, end the thread or process; a process that
+        has not ended after ``timeout_s`` is killed (a thread cannot be, and is left behind)."""
         ...
 
     def submit(self, command: Callable[[Any], Any]) -> Future[Any]:
@@ -88,6 +89,10 @@ class EngineHost(Protocol):
         """``n`` fresh camera frames, between shots (calibration)."""
         ...
 
+    def shot_watchdog_s(self) -> Future[float]:
+        """How long a shot may run before the engine ends it as a fault (``Engine.shot_watchdog_s``)."""
+        ...
+
 
 class EngineCommands(ABC):
     """The commands of ``EngineHost`` written once over ``submit`` (commands pickle, for a process)."""
@@ -106,3 +111,6 @@ class EngineCommands(ABC):
 
     def acquire_images(self, n: int) -> Future[np.ndarray]:
         return self.submit(methodcaller("acquire_images", n))
+
+    def shot_watchdog_s(self) -> Future[float]:
+        return self.submit(methodcaller("shot_watchdog_s"))

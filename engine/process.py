@@ -211,15 +211,15 @@ class EngineProcess(EngineCommands):
             )
         return future
 
-    def close(self) -> None:
-        """Ask the child to close its devices and exit; kill it if it does not within 10 s."""
+    def close(self, *, timeout_s: float = 10.0) -> None:
+        """Ask the child to close its devices and exit; kill it if it does not within ``timeout_s``."""
         if self._process is None:
             return
         if self._process.poll() is None and self._conn is not None:
             try:
                 with self._send_lock:
                     self._conn.send(None)
-                self._process.wait(timeout=10)
+                self._process.wait(timeout=timeout_s)
             except (OSError, subprocess.TimeoutExpired):
                 pass
         self._kill()

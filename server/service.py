@@ -29,6 +29,7 @@ from collections import OrderedDict, deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
 from typing import Any
 
@@ -116,7 +117,7 @@ class _NoEngine(EngineCommands):
         future.set_exception(DevicesUnavailable(self.exit_reason))
         return future
 
-    def close(self) -> None:
+    def close(self, *, timeout_s: float = 10.0) -> None:
         pass
 
 
@@ -182,6 +183,7 @@ class LabService:
         # Shot ids come from here, not from the engine, so they keep increasing when devices are re-opened
         # on a new engine (the run store and the API key shots by id).
         self._shot_ids = itertools.count()
+        self._shot_limit_s: float | None = None  # see _learn_shot_limit
         self._lock = threading.Lock()  # serializes commands to the engine
         self._state_lock = threading.Lock()  # guards the fields below
         self._history: deque[ShotRecord] = deque(maxlen=history)
@@ -225,6 +227,7 @@ class LabService:
             self._fault = self._et.exit_reason
         else:
             self._config = self._et.config
+            self._learn_shot_limit()
         if self._store is not None:
             self._store.note_config(self._config)
         self._runner.start()
@@ -536,11 +539,20 @@ class LabService:
         if isinstance(self._et, _NoEngine):
             raise DevicesUnavailable(self._et.exit_reason or "no engine")
 
-    def _wait(self, future: Future[Any]) -> Any:
+    def _wait(self, future: Future[Any], *, timeout_s: float | None = None) -> Any:
         """The result of an engine command; an engine process that died says so as ``DevicesUnavailable``
-        (503 over REST) rather than as an internal error."""
+        (503 over REST) rather than as an internal error. A command still running after ``timeout_s``
+        means an engine stuck in a device call: it is stopped (``_abandon_engine``)."""
         try:
-            return future.result()
+            return future.result(timeout=timeout_s)
+        except FutureTimeout:
+            reason = (
+                f"watchdog: the engine did not finish a shot within {timeout_s:.3g} s (twice its own watchdog, "
+                "plus a second): it was stopped; the card keeps playing its hold waveform. Apply a configuration "
+                "(PUT /api/config) to start a new engine"
+            )
+            self._abandon_engine(reason)
+            raise DevicesUnavailable(reason) from None
         except EngineProcessDied:
             self._notice_dead_engine()
             raise DevicesUnavailable(self._et.exit_reason or "the engine process died") from None
@@ -555,6 +567,18 @@ class LabService:
             self._et = _NoEngine(reason)
             with self._state_lock:
                 self._fault = reason
+
+    def _learn_shot_limit(self) -> None:
+        """How long a shot may take before the service gives up on the engine: twice the engine's own
+        watchdog (which ends a slow shot between cycles) plus a second, for a device call that never returns."""
+        self._shot_limit_s = 2 * float(self._wait(self._et.shot_watchdog_s())) + 1.0
+
+    def _abandon_engine(self, reason: str) -> None:
+        """Stop an engine that is stuck (its process is killed; a stuck thread is left behind)."""
+        self._et.close(timeout_s=1.0)
+        self._et = _NoEngine(reason)
+        with self._state_lock:
+            self._fault = reason
 
     def _reopen(self, config: SystemConfig) -> None:
         """Open the devices ``config`` names on a new engine host; keep the old one if they do not open."""
@@ -614,6 +638,7 @@ class LabService:
                 text = f"{type(err).__name__}: {err}"
                 text = text if len(text) <= 500 else text[:500] + "..."
                 raise ConfigRejected([{"loc": ["body"], "msg": text, "type": "engine_refused"}]) from None
+        self._learn_shot_limit()
         if self._store is not None:
             self._store.note_config(config)
         if remember:
@@ -664,7 +689,7 @@ class LabService:
         """One shot on the engine, then the bookkeeping and the listeners on this (the caller's) thread."""
         done = self._busy(what)
         try:
-            record, frame = self._wait(self._et.run_shot(next(self._shot_ids)))
+            record, frame = self._wait(self._et.run_shot(next(self._shot_ids)), timeout_s=self._shot_limit_s)
         finally:
             done()
         self._on_shot(record, frame)

@@ -64,6 +64,10 @@ class FakeEngine:
         self.apply(config)
 
     has_trigger_input = False  # like an AWG without a trigger line
+    watchdog_s = 60.0  # what ``shot_watchdog_s`` answers
+
+    def shot_watchdog_s(self) -> float:
+        return self.watchdog_s
 
     def apply(self, config: SystemConfig) -> None:
         if config.solver.algorithm == "refuse":

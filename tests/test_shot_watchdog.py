@@ -1,13 +1,20 @@
 """The shot watchdog: a shot that keeps being slow (here every segment upload late by 0.3 s) is ended as a
 fault once it runs past ``loop.watchdog_factor`` times the longest healthy shot, with the atoms held; a
-healthy shot never comes near it."""
+healthy shot never comes near it. An engine stuck in one call that never returns is stopped by the service."""
 
 from __future__ import annotations
+
+from functools import partial
+
+import pytest
 
 from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine
+from engine.process import EngineProcess
 from engine.records import Outcome
+from server.service import DevicesUnavailable, LabService
+from server_fakes import FakeEngine, example_config
 from sim_signals import chain_config
 
 
@@ -51,3 +58,23 @@ def test_slow_shot_ends_as_a_watchdog_fault_with_atoms_held() -> None:
 
     engine.apply(config)  # the fault cleared: shots run again
     assert engine.run_shot().outcome is not Outcome.FAULT
+
+
+def hanging_engine(watchdog_s: float) -> object:
+    """A stand-in engine whose shots never end (a device call that never returns), for an engine process."""
+    engine = FakeEngine(example_config(), shot_s=3600.0)
+    engine.watchdog_s = watchdog_s
+    return engine
+
+
+def test_service_stops_an_engine_process_stuck_in_a_shot() -> None:
+    host = EngineProcess(partial(hanging_engine, 0.2))
+    service = LabService(engine_thread=host, pause_s=0.0).start()
+    try:
+        with pytest.raises(DevicesUnavailable, match="watchdog"):
+            service.shot()  # given up after 2 x 0.2 s + 1 s
+        assert not host.alive  # the stuck process was killed
+        status = service.status()
+        assert status.state == "fault" and "watchdog" in (status.reason or "")
+    finally:
+        service.close()

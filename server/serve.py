@@ -56,6 +56,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # t
     p.add_argument("--host", default="127.0.0.1", help="address to bind the API and the dashboard to (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8000, help="API port (default 8000; 0 picks a free one)")
     p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080; 0 picks a free one)")
+    p.add_argument("--dashboard-host", default=None,
+                   help="address to bind the dashboard to (default: --host); e.g. 127.0.0.1 to keep the dashboard "
+                   "on this machine while the API serves the lab network")
     p.add_argument("--runs-dir", default="runs", help="where the HDF5 run files go (default ./runs)")
     p.add_argument("--pause", type=float, default=0.5, help="pause between continuous shots in seconds (default 0.5)")
     p.add_argument("--idle", action="store_true", help="do not start shots at once; wait for a command")
@@ -154,6 +157,11 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    dashboard_host = args.dashboard_host or args.host
+    if not is_loopback(dashboard_host) and token is None:
+        print(f"llrs serve: refusing to bind the dashboard to {dashboard_host} without a token (set LLRS_TOKEN)",
+              file=sys.stderr)
+        return 2
     try:
         if args.config is None and not DEFAULT_CONFIG.exists():  # installed without the examples
             config = SystemConfig(name="chain-1x64 (built-in default)")
@@ -203,7 +211,7 @@ def main(args: argparse.Namespace) -> int:
         if not args.no_dashboard:
             from frontend.dashboard import Dashboard
 
-            dashboard = Dashboard(service, host=args.host, port=args.dashboard_port, api_url=api_url, token=token)
+            dashboard = Dashboard(service, host=dashboard_host, port=args.dashboard_port, api_url=api_url, token=token)
             dashboard_port = dashboard.start()
         # Without a token the server is loopback-only, and answers only to loopback names (a page of another
         # site cannot reach it by pointing a DNS name of its own at 127.0.0.1).
@@ -227,7 +235,9 @@ def main(args: argparse.Namespace) -> int:
             service.run()
         _say("")
         if dashboard_port is not None:
-            _say(f"  dashboard   http://{shown_host}:{dashboard_port}/")
+            shown_dashboard = f"[{dashboard_host}]" if ":" in dashboard_host else dashboard_host
+            _say(f"  dashboard   http://{shown_dashboard}:{dashboard_port}/"
+                 + ("   (read-only until a tab logs in with the token)" if token else ""))
         _say(f"  API         {api_url}/   (docs {api_url}/docs, live cycles ws://{shown_host}:{api_port}/api/live)")
         where = "a thread of this process" if args.engine == "thread" else "its own process" + (
             f", pinned to core {args.engine_cpu} (the server keeps the others)" if args.engine_cpu is not None else "")

@@ -71,8 +71,10 @@ def tone_csv(path: Path, n: int = 64) -> Path:
 
 
 @pytest.mark.parametrize("where", ["/proc/self/environ", "/etc/passwd", "../outside.csv"])
-def test_tone_file_outside_the_tone_dir_is_refused_without_reading_it(secured: TestClient, lab: LabService, where: str) -> None:
-    os.environ["LLRS_TEST_SECRET"] = "do-not-leak"
+def test_tone_file_outside_the_tone_dir_is_refused_without_reading_it(
+    secured: TestClient, lab: LabService, where: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("LLRS_TEST_SECRET", "do-not-leak")
     before = secured.get("/api/config").json()
     r = secured.patch("/api/config", json={"array": {"x_tones": {"csv": where}}})
     assert r.status_code == 422

@@ -53,8 +53,9 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
-PositiveFloat = Annotated[float, Field(gt=0)]
 Fraction = Annotated[float, Field(ge=0, le=1)]
+#: A pixel position or step on the camera (the largest sensors are a few thousand pixels across).
+PixelCoordinate = Annotated[float, Field(ge=-1e5, le=1e5)]
 
 
 class ToneAxisConfig(_Model):
@@ -76,7 +77,9 @@ class ToneAxisConfig(_Model):
         "comb: peak = sum of amplitudes, never clipping); schroeder / zero: low / high crest factor, and moves "
         "carry an end-pinned phase correction (up to ~0.94/slot_duration_s Hz off the shape mid-move)",
     )
-    csv: str | None = Field(default=None, description="path to an alpha,nu,phi CSV; overrides the comb")
+    csv: str | None = Field(
+        default=None, max_length=4096, description="path to an alpha,nu,phi CSV; overrides the comb"
+    )
 
 
 class ArrayConfig(_Model):
@@ -119,9 +122,9 @@ class CameraConfig(_Model):
     roi_width_px: Annotated[int, Field(ge=1, le=4096)] = 1024
     roi_height_px: Annotated[int, Field(ge=1, le=4096)] = 16
     binning: tuple[Annotated[int, Field(ge=1, le=16)], Annotated[int, Field(ge=1, le=16)]] = (1, 1)
-    origin_px: tuple[float, float] = Field(default=(8.0, 8.0), description="(x, y) pixel of trap (row 0, col 0)")
-    col_step_px: tuple[float, float] = Field(default=(16.0, 0.0), description="(x, y) pixel step from column c to c+1")
-    row_step_px: tuple[float, float] = Field(default=(0.0, 16.0), description="(x, y) pixel step from row r to r+1")
+    origin_px: tuple[PixelCoordinate, PixelCoordinate] = Field(default=(8.0, 8.0), description="(x, y) pixel of trap (row 0, col 0)")
+    col_step_px: tuple[PixelCoordinate, PixelCoordinate] = Field(default=(16.0, 0.0), description="(x, y) pixel step from column c to c+1")
+    row_step_px: tuple[PixelCoordinate, PixelCoordinate] = Field(default=(0.0, 16.0), description="(x, y) pixel step from row r to r+1")
     psf_sigma_px: Annotated[float, Field(gt=0, le=100)] = 1.2
     exposure_s: Annotated[float, Field(gt=0, le=60)] = 0.020
     em_gain: Annotated[float, Field(ge=1, le=1000)] = 300.0
@@ -142,6 +145,8 @@ class ImagingConfig(_Model):
     psf_box_px: Annotated[int, Field(ge=1, le=31)] = 7
     threshold: float | None = Field(
         default=None,
+        ge=-1e12,
+        le=1e12,
         description=(
             "counts above which a trap is occupied; null = calibrate from frames taken when the configuration "
             "is applied (a two-population fit, engine.imaging_calibration)"
@@ -164,18 +169,18 @@ class TargetConfig(_Model):
     """
 
     kind: Literal["centre", "rectangle", "mask"] = "centre"
-    count: Annotated[int, Field(ge=1)] | None = 32
-    row0: Annotated[int, Field(ge=0)] = 0
-    col0: Annotated[int, Field(ge=0)] = 0
-    rows: Annotated[int, Field(ge=1)] | None = None
-    cols: Annotated[int, Field(ge=1)] | None = None
-    mask: list[str] | None = None
+    count: Annotated[int, Field(ge=1, le=1024 * 1024)] | None = 32
+    row0: Annotated[int, Field(ge=0, le=1023)] = 0
+    col0: Annotated[int, Field(ge=0, le=1023)] = 0
+    rows: Annotated[int, Field(ge=1, le=1024)] | None = None
+    cols: Annotated[int, Field(ge=1, le=1024)] | None = None
+    mask: list[Annotated[str, Field(max_length=1024)]] | None = Field(default=None, max_length=1024)
 
 
 class SolverConfig(_Model):
     """Module III: which planner turns occupancy + target into waveform slots."""
 
-    algorithm: str = "exact-1d"
+    algorithm: str = Field(default="exact-1d", min_length=1, max_length=64)
     objective: Literal["slots", "transfers"] = Field(
         default="slots",
         description="what the planner minimises where it can choose: waveform slots (time) or pick-ups per "
@@ -192,7 +197,7 @@ class WaveformConfig(_Model):
     shape_sharpness: Annotated[float, Field(gt=0, le=50)] = Field(
         default=6.0, description="tanh/erf steepness in units of 1/slot_duration_s (v*T); ignored by min-jerk"
     )
-    table_max_bytes: Annotated[int, Field(ge=0)] = Field(
+    table_max_bytes: Annotated[int, Field(ge=0, le=2**34)] = Field(
         default=512 * 2**20, description="lookup-table budget; moves not in the table are synthesized directly"
     )
 
@@ -208,9 +213,9 @@ class AWGConfig(_Model):
     n_steps: Annotated[int, Field(ge=8, le=4096)] = 4096
     waveforms_per_segment: Annotated[int, Field(ge=1, le=1024)] = 32
     upload_bytes_per_s: Annotated[float, Field(ge=1e3, le=1e12)] = 1.58e9
-    upload_jitter_s: Annotated[float, Field(ge=0)] = 5e-6
-    step_write_s: Annotated[float, Field(ge=0)] = 4e-6
-    max_memory_bytes: Annotated[int, Field(ge=1)] = 2**32
+    upload_jitter_s: Annotated[float, Field(ge=0, le=1e-2)] = 5e-6
+    step_write_s: Annotated[float, Field(ge=0, le=1e-2)] = 4e-6
+    max_memory_bytes: Annotated[int, Field(ge=1, le=2**40)] = 2**32
 
 
 class LoopConfig(_Model):
@@ -218,6 +223,11 @@ class LoopConfig(_Model):
 
     max_cycles: Annotated[int, Field(ge=1, le=100)] = 5
     trigger: Literal["software", "hardware"] = "software"
+    watchdog_factor: Annotated[float, Field(ge=1, le=1000)] = Field(
+        default=4.0,
+        description="a shot running longer than this multiple of the longest healthy shot (every cycle's frame "
+        "at camera.timeout_s, the longest plan the AWG holds uploaded and played) ends as a fault, atoms held",
+    )
 
 
 class FaultConfig(_Model):
@@ -232,7 +242,11 @@ class FaultConfig(_Model):
     )
     awg_upload: Literal["none", "fail"] = Field(default="none", description="every segment upload fails")
     upload_delay_s: Annotated[float, Field(ge=0, le=1)] = Field(
-        default=0.0, description="extra time added to every segment upload (late uploads cause underruns)"
+        default=0.0,
+        description="extra time added to every segment upload: plans streamed through more than two segments "
+        "underrun (the card holds in the failsafe until the data arrives); a plan that fits the short path is "
+        "uploaded before it starts, so there the delay shows as IV.upload time; over the streamer's 1 s upload "
+        "timeout it is a device fault",
     )
     solver: Literal["none", "exception"] = Field(
         default="none", description="the planner raises an unexpected exception (a bug) in every solve"
@@ -260,7 +274,7 @@ class SimImagingConfig(_Model):
         default=0.005, description="mean spurious electrons per sensor pixel per readout (EMCCD clock-induced charge)"
     )
     quantum_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
-    read_noise_e: Annotated[float, Field(ge=0)] = 60.0
+    read_noise_e: Annotated[float, Field(ge=0, le=1e4)] = 60.0
     bias_counts: Annotated[float, Field(ge=0, le=65535)] = 500.0
     electrons_per_count: Annotated[float, Field(gt=0, le=1e6)] = 20.0
     loss_rate_hz: Annotated[float, Field(ge=0, le=1e4)] = Field(
@@ -302,7 +316,7 @@ class MoveLossConfig(_Model):
 class SimConfig(_Model):
     """The simulated lab: atoms, loss and time."""
 
-    seed: int | None = 1
+    seed: Annotated[int, Field(ge=0, le=2**63 - 1)] | None = 1
     loading_probability: Fraction = 0.6
     survival_transfer: Fraction = 0.985
     survival_step: Fraction = 0.985
@@ -345,12 +359,12 @@ class DevicesConfig(_Model):
         """The Spectrum M4i.66xx AWG in sequence mode (``drivers/spectrum.py``)."""
 
         device: str = Field(
-            default="/dev/spcm0", min_length=1, description="card to open: '/dev/spcmN' or 'TCPIP::<ip>::inst0::INSTR'"
+            default="/dev/spcm0", min_length=1, max_length=256, description="card to open: '/dev/spcmN' or 'TCPIP::<ip>::inst0::INSTR'"
         )
         amplitude_mv: Annotated[int, Field(ge=80, le=2500)] | list[Annotated[int, Field(ge=80, le=2500)]] = Field(
             default=140, description="output amplitude per channel in mV (one value for all channels, or one per channel)"
         )
-        external_reference_hz: PositiveFloat | None = Field(
+        external_reference_hz: Annotated[float, Field(gt=0, le=1e9)] | None = Field(
             default=None, description="frequency of an external reference clock (e.g. 10e6); null = internal PLL"
         )
         trigger: Literal["ext0", "software"] = Field(
@@ -370,7 +384,7 @@ class DevicesConfig(_Model):
         stop_level: Literal["zero", "hold_last"] = Field(
             default="zero", description="what the outputs do when the card is stopped"
         )
-        dma_timeout_s: PositiveFloat = Field(default=5.0, description="a segment upload that takes longer is a fault")
+        dma_timeout_s: Annotated[float, Field(gt=0, le=600)] = Field(default=5.0, description="a segment upload that takes longer is a fault")
 
         @model_validator(mode="after")
         def _distinct_lines(self) -> DevicesConfig.SpectrumSettings:
@@ -384,24 +398,24 @@ class DevicesConfig(_Model):
         """The Andor iXon EMCCD through Andor's Python SDK wrapper ``pyAndorSDK2`` (``drivers/andor.py``)."""
 
         index: Annotated[int, Field(ge=0, le=7)] = Field(default=0, description="which Andor camera (0 = the first)")
-        sdk_path: str = Field(default="", description="directory handed to the SDK's Initialize ('' = its default)")
+        sdk_path: str = Field(default="", max_length=4096, description="directory handed to the SDK's Initialize ('' = its default)")
         temperature_c: Annotated[int, Field(ge=-120, le=30)] = -60
         cooler: bool = True
         keep_cooling_on_close: bool = Field(
             default=True, description="leave the cooler running after the SDK shuts down (no thermal shock)"
         )
-        wait_for_temperature_s: Annotated[float, Field(ge=0)] = Field(
+        wait_for_temperature_s: Annotated[float, Field(ge=0, le=3600)] = Field(
             default=0.0, description="at open, wait up to this long for the temperature to stabilize (0 = do not wait)"
         )
-        roi_offset_px: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]] = Field(
+        roi_offset_px: tuple[Annotated[int, Field(ge=0, le=16384)], Annotated[int, Field(ge=0, le=16384)]] = Field(
             default=(0, 0), description="(x, y) sensor pixel of the ROI's first column and row"
         )
-        hs_speed_index: Annotated[int, Field(ge=0)] = Field(default=0, description="horizontal shift speed index")
-        vs_speed_index: Annotated[int, Field(ge=0)] | None = Field(
+        hs_speed_index: Annotated[int, Field(ge=0, le=64)] = Field(default=0, description="horizontal shift speed index")
+        vs_speed_index: Annotated[int, Field(ge=0, le=64)] | None = Field(
             default=None, description="vertical shift speed index; null = the SDK's fastest recommended speed"
         )
         vs_amplitude: Annotated[int, Field(ge=0, le=4)] = 0
-        preamp_gain_index: Annotated[int, Field(ge=0)] = 0
+        preamp_gain_index: Annotated[int, Field(ge=0, le=64)] = 0
         em_gain_mode: Literal["dac255", "dac4095", "linear", "real"] = "real"
         frame_transfer: bool = True
         trigger: Literal["external", "software", "internal"] = Field(
@@ -415,10 +429,10 @@ class DevicesConfig(_Model):
         """The Active Silicon FireBird Camera Link grabber through its C library (``drivers/activesilicon.py``)."""
 
         config_file: str | None = Field(
-            default=None, description="the grabber's camera configuration file (.pcf) for the iXon"
+            default=None, max_length=4096, description="the grabber's camera configuration file (.pcf) for the iXon"
         )
         library: str | None = Field(
-            default=None, description="path of the PHX library; null = search the usual install locations"
+            default=None, max_length=4096, description="path of the PHX library; null = search the usual install locations"
         )
         board: Annotated[int, Field(ge=1, le=7)] = 1
         channel: Annotated[int, Field(ge=1, le=2)] = 1
@@ -472,7 +486,7 @@ class DevicesConfig(_Model):
 class SystemConfig(_Model):
     """Everything the engine needs to run shots."""
 
-    name: str = "llrs"
+    name: str = Field(default="llrs", max_length=200)
     array: ArrayConfig = ArrayConfig()
     camera: CameraConfig = CameraConfig()
     imaging: ImagingConfig = ImagingConfig()

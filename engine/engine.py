@@ -19,6 +19,7 @@ import numpy as np
 
 from engine.config import SystemConfig
 from engine.devices import DeviceError, DeviceSet
+from engine.host import EngineCommands
 from engine.imaging import Detector, calibration_frames
 from engine.operations import Plan
 from engine.records import CycleRecord, Outcome, ShotRecord
@@ -28,7 +29,7 @@ from engine.targets import build_target, target_filled
 from engine.timing import StageTimer
 from engine.waveforms import WaveformBank
 
-__all__ = ["Engine", "EngineThread", "InjectedSolverFault", "Lab"]
+__all__ = ["Engine", "EngineThread", "InjectedSolverFault", "Lab", "ShotWatchdogExpired"]
 
 
 class Lab(Protocol):
@@ -44,6 +45,10 @@ class Lab(Protocol):
     def prepare_shot(self) -> None: ...
 
     def ground_truth(self) -> np.ndarray: ...
+
+
+class ShotWatchdogExpired(RuntimeError):
+    """A shot ran past its watchdog (``Engine.shot_watchdog_s``): it ends as a fault with the atoms held."""
 
 
 class InjectedSolverFault(Exception):
@@ -159,10 +164,26 @@ class Engine:
         pipeline.streamer.program_idle()
         dev.awg.start(pipeline.streamer.layout.idle_step)
 
-    def run_shot(self, shot_id: int | None = None) -> ShotRecord:
-        """Run one shot: load (simulated lab), then cycles until success, unsolvable or max_cycles."""
+    def shot_watchdog_s(self) -> float:
+        """How long a shot may run before it is ended as a fault: ``loop.watchdog_factor`` times the longest a
+        healthy shot takes (each cycle: an exposure, a frame read up to ``camera.timeout_s``, and the longest
+        plan the AWG layout holds, uploaded and played). Checked after every cycle, so a device that keeps
+        being slow (late uploads, a slow camera) cannot hold the engine, and the commands waiting for it, for
+        minutes."""
         p = self._p
         assert p is not None
+        cfg = p.config
+        slot_bytes = 2 * p.bank.slot_samples * p.bank.n_channels
+        plan_s = p.streamer.max_slots * (cfg.waveforms.slot_duration_s + slot_bytes / cfg.awg.upload_bytes_per_s)
+        cycle_s = cfg.camera.exposure_s + cfg.camera.timeout_s + plan_s
+        return cfg.loop.watchdog_factor * (cfg.loop.max_cycles + 1) * cycle_s
+
+    def run_shot(self, shot_id: int | None = None) -> ShotRecord:
+        """Run one shot: load (simulated lab), then cycles until success, unsolvable or max_cycles (or a fault,
+        the watchdog's included)."""
+        p = self._p
+        assert p is not None
+        watchdog_s = self.shot_watchdog_s()
         shot_id = self.shots_done if shot_id is None else shot_id
         record = ShotRecord(
             shot_id=shot_id, config_digest=p.config.digest(), algorithm=p.config.solver.algorithm, target=p.target
@@ -187,6 +208,12 @@ class Engine:
                 if outcome is not None:
                     record.outcome = outcome
                     break
+                elapsed_s = clock.now_s() - record.t_start_s
+                if elapsed_s > watchdog_s:
+                    raise ShotWatchdogExpired(
+                        f"watchdog: the shot ran {elapsed_s:.3g} s after {cycle + 1} cycles, over its "
+                        f"{watchdog_s:.3g} s limit (loop.watchdog_factor x the longest healthy shot); atoms held"
+                    )
         except Exception as err:  # a device, the solver or a bug: the shot ends, the engine lives on
             record.outcome = Outcome.FAULT
             record.fault = f"{type(err).__name__}: {err}"
@@ -224,6 +251,12 @@ class Engine:
             record.fault = record.fault or f"DeviceError: resume pulse: {err}"
         self.shots_done += 1
         return record
+
+    @property
+    def has_trigger_input(self) -> bool:
+        """Whether the AWG has a trigger input the engine can wait on (the devices answer: only an AWG with
+        ``wait_trigger`` has one)."""
+        return hasattr(self.devices.awg, "wait_trigger")
 
     def wait_trigger(self, *, timeout_s: float) -> bool:
         """Between shots, armed on ``loop.trigger: hardware``: wait for the sequencer's trigger line at the AWG.
@@ -335,21 +368,20 @@ class Engine:
         return self._p.image.copy()
 
 
-class EngineThread:
-    """Owns an ``Engine`` on a dedicated thread; other threads send it commands and get futures back.
+class EngineThread(EngineCommands):
+    """Owns an ``Engine`` on a dedicated thread; other threads send it commands and get futures back
+    (``engine.host.EngineHost``).
 
     Commands run strictly one after another, so two callers asking for a shot at once are serialized.
-    ``run_continuous`` keeps running shots until ``stop`` (or another command) arrives.
     """
+
+    shares_interpreter = True
 
     def __init__(self, build: Callable[[], Engine], *, name: str = "llrs-engine") -> None:
         self._build = build
         self._commands: queue.Queue[tuple[Callable[[Engine], Any], Future[Any]] | None] = queue.Queue()
-        self._continuous = threading.Event()
         self._ready = threading.Event()
-        self._listeners: list[Callable[[ShotRecord], None]] = []
         self._error: BaseException | None = None
-        self.last_error: Exception | None = None  # why continuous shots stopped by themselves, if they did
         self.engine: Engine | None = None
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
@@ -365,6 +397,9 @@ class EngineThread:
     def __enter__(self) -> EngineThread:
         return self.start()
 
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     @property
     def config(self) -> SystemConfig | None:
         """The engine's configuration (``None`` before ``start``)."""
@@ -372,47 +407,34 @@ class EngineThread:
 
     @property
     def has_trigger_input(self) -> bool:
-        """Whether the engine can wait for a hardware trigger (``Engine.wait_trigger``)."""
-        return hasattr(self.engine, "wait_trigger")
+        """Whether the engine's devices can wait for a hardware trigger (``Engine.has_trigger_input``)."""
+        return self.engine is not None and self.engine.has_trigger_input
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive() and self.engine is not None
 
-    def add_listener(self, callback: Callable[[ShotRecord], None]) -> None:
-        """``callback(record)`` runs on the engine thread after every shot; keep it short and non-blocking."""
-        self._listeners.append(callback)
+    @property
+    def exit_reason(self) -> str | None:
+        if self.alive or not self._ready.is_set():
+            return None
+        return "the engine thread has stopped" if self._error is None else f"the engine failed to start: {self._error}"
 
     def submit(self, command: Callable[[Engine], Any]) -> Future[Any]:
         future: Future[Any] = Future()
-        self._continuous.clear()
         self._commands.put((command, future))
         return future
 
     def run_shots(self, n: int) -> Future[list[ShotRecord]]:
-        return self.submit(lambda engine: [self._shot(engine) for _ in range(n)])
+        """``n`` shots one after another, numbered by the engine (``llrs run``)."""
+        return self.submit(lambda engine: [engine.run_shot() for _ in range(n)])
 
-    def run_continuous(self) -> None:
-        self._continuous.set()
-        self._commands.put((lambda engine: None, Future()))
-
-    def stop(self) -> None:
-        self._continuous.clear()
-
-    @property
-    def running_continuously(self) -> bool:
-        return self._continuous.is_set()
-
-    def close(self) -> None:
-        self._continuous.clear()
+    def close(self, *, timeout_s: float = 10.0) -> None:
+        """Finish the command in progress and close the devices; a thread stuck in a command for longer than
+        ``timeout_s`` is left behind (a thread cannot be killed)."""
         if self._thread.is_alive():
             self._commands.put(None)
-            self._thread.join(timeout=10)
-
-    def _shot(self, engine: Engine) -> ShotRecord:
-        record = engine.run_shot()
-        for listener in self._listeners:
-            listener(record)
-        return record
+            self._thread.join(timeout=timeout_s)
 
     def _run(self) -> None:
         try:
@@ -424,13 +446,6 @@ class EngineThread:
         self._ready.set()
         engine = self.engine
         while True:
-            if self._continuous.is_set() and self._commands.empty():
-                try:
-                    self._shot(engine)
-                except Exception as err:  # a listener failed: stop running, keep the thread alive
-                    self._continuous.clear()
-                    self.last_error = err
-                continue
             item = self._commands.get()
             if item is None:
                 break

@@ -7,8 +7,8 @@ engine's core, evicting the caches the cycle needs. Under a busy browser and a p
 the software latency's p99 several times its idle value. In its own process the engine has its own
 interpreter lock and, pinned, its own core and L2 cache: the server can be as busy as it likes.
 
-``EngineProcess`` has the interface ``LabService`` uses of ``EngineThread`` (``start``, ``submit``,
-``close``, ``config``, ``has_trigger_input``), so the service does not care where the engine runs. What
+``EngineProcess`` is an ``engine.host.EngineHost``, as ``EngineThread`` is, so the service does not care
+where the engine runs. What
 crosses the process boundary is pickled: the engine's builder (a module-level function, or a
 ``functools.partial`` of one), each command (``operator.methodcaller`` or a module-level function of the
 engine) and each result (shot records, frames, configurations). The child runs commands one after another
@@ -32,10 +32,8 @@ from concurrent.futures import Future
 from multiprocessing.connection import Connection
 from typing import Any
 
-import numpy as np
-
 from engine.config import SystemConfig
-from engine.records import ShotRecord
+from engine.host import EngineCommands, shot_with_frame
 
 __all__ = ["EngineProcess", "EngineProcessDied", "default_engine_cpu", "shot_with_frame"]
 
@@ -43,14 +41,6 @@ __all__ = ["EngineProcess", "EngineProcessDied", "default_engine_cpu", "shot_wit
 class EngineProcessDied(RuntimeError):
     """The engine's process exited; the message says how. Restart the server (or apply a configuration
     that re-opens the devices) to get a new one."""
-
-
-def shot_with_frame(engine: Any) -> tuple[ShotRecord, np.ndarray | None]:
-    """One shot and its final camera frame (``None`` if the engine offers none): the service's shot command,
-    module-level so that it can be sent to an engine process."""
-    record = engine.run_shot()
-    last_frame = getattr(engine, "last_frame", None)
-    return record, (last_frame() if last_frame is not None else None)
 
 
 def default_engine_cpu() -> int | None:
@@ -93,7 +83,7 @@ def _child_main(conn: Connection) -> None:
     except BaseException as err:  # noqa: BLE001 - reported to the parent's start()
         conn.send(("failed", _portable(err)))
         return
-    conn.send(("ready", (engine.config, hasattr(engine, "wait_trigger"))))
+    conn.send(("ready", (engine.config, engine.has_trigger_input)))
     try:
         while True:
             try:
@@ -120,12 +110,14 @@ def _child_main(conn: Connection) -> None:
                 pass
 
 
-class EngineProcess:
+class EngineProcess(EngineCommands):
     """Owns an engine in a child process; ``submit(command)`` returns a future of ``command(engine)``.
 
     ``build``, ``command`` and results must pickle (see the module docstring). ``cpu``: pin the child to this
     core and this process to the others (``None``: no pinning).
     """
+
+    shares_interpreter = False
 
     def __init__(self, build: Callable[[], Any], *, cpu: int | None = None, name: str = "llrs-engine") -> None:
         self._build = build
@@ -219,15 +211,15 @@ class EngineProcess:
             )
         return future
 
-    def close(self) -> None:
-        """Ask the child to close its devices and exit; kill it if it does not within 10 s."""
+    def close(self, *, timeout_s: float = 10.0) -> None:
+        """Ask the child to close its devices and exit; kill it if it does not within ``timeout_s``."""
         if self._process is None:
             return
         if self._process.poll() is None and self._conn is not None:
             try:
                 with self._send_lock:
                     self._conn.send(None)
-                self._process.wait(timeout=10)
+                self._process.wait(timeout=timeout_s)
             except (OSError, subprocess.TimeoutExpired):
                 pass
         self._kill()

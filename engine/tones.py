@@ -67,18 +67,15 @@ def tones_of(tones: ToneAxis, n: int, axis: str) -> Tones:
             if missing:
                 raise ConfigError(
                     f"{where} {path}: needs columns alpha,nu,phi (amplitude fraction, Hz, rad); "
-                    f"missing {','.join(missing)} (header: {','.join(cols) or 'empty'})"
-                )
+                    f"missing {','.join(missing)} in its first line"
+                )  # the file's text is never quoted: the path could name any file, secrets included
             reader.fieldnames = cols
             rows = []
             for line, rec in enumerate(reader, start=2):
                 try:
                     rows.append((float(rec["alpha"]), float(rec["nu"]), float(rec["phi"])))
                 except (TypeError, ValueError):
-                    raise ConfigError(
-                        f"{where} {path} line {line}: alpha, nu and phi must be numbers (got "
-                        f"{rec.get('alpha')!r}, {rec.get('nu')!r}, {rec.get('phi')!r})"
-                    ) from None
+                    raise ConfigError(f"{where} {path} line {line}: alpha, nu and phi must be numbers") from None
     except OSError as err:
         raise ConfigError(f"{where}: cannot read tone file {path}: {err.strerror or err}") from None
     if len(rows) < n:

@@ -7,11 +7,17 @@ listener on the engine thread after every shot: the listener only sets an event,
 dashboard does the drawing, so a slow browser or a slow conversion never delays a shot.
 
 What is drawn is computed by the plain functions of ``frontend.views``.
+
+Authority: the dashboard may do what the REST API allows and no more. With a token (``LLRS_TOKEN``) every
+browser tab starts read-only: it sees everything, and its buttons and fields change nothing until it logs in
+with the token (a field only that tab sees). A value moved by a tab that has not logged in is put back to the
+running configuration. Without a token the server is loopback-only and so is the dashboard, as the API.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hmac
 import io
 import logging
 import threading
@@ -93,6 +99,7 @@ class Dashboard:
         host: str = "127.0.0.1",
         port: int = 8080,
         api_url: str | None = None,
+        token: str | None = None,
         history: int = 200,
         timing_shots: int = 50,
         refresh_s: float = 0.5,
@@ -101,6 +108,8 @@ class Dashboard:
         self.host = host
         self.port = port
         self.api_url = api_url
+        self._token = token
+        self._logged_in: set[int] = set()  # viser client ids that gave the token
         self.history = history
         self.timing_shots = timing_shots
         self.refresh_s = refresh_s
@@ -126,6 +135,9 @@ class Dashboard:
             self._server = viser.ViserServer(host=self.host, port=self.port, label="LLRS lab", verbose=False)
         self.port = self._server.get_port()
         self._build()
+        if self._token is not None:
+            self._server.on_client_connect(self._login_panel)
+            self._server.on_client_disconnect(lambda client: self._logged_in.discard(client.client_id))
         self.service.add_listener(self._on_shot)
         self._worker = threading.Thread(target=self._loop, name="llrs-dashboard", daemon=True)
         self._worker.start()
@@ -215,14 +227,63 @@ class Dashboard:
         self._scene_key: tuple[int, ...] | None = None
         self.sc_atoms: Any = None
 
-        self.b_run.on_click(lambda event: self._command("run", self.service.run))
-        self.b_stop.on_click(lambda event: self._command("stop", self.service.stop))
-        self.b_once.on_click(lambda event: self._command("one shot", self.service.shot))
-        self.b_problem.on_click(lambda event: self._apply(self._problem_patch(), "problem"))
-        self.b_sim.on_click(lambda event: self._apply(self._sim_patch(), "simulation"))
-        self.b_fit_threshold.on_click(lambda event: self._fit_threshold())
-        self.b_apply_threshold.on_click(lambda event: self._apply_threshold())
+        self.b_run.on_click(self._guarded(lambda: self._command("run", self.service.run)))
+        self.b_stop.on_click(self._guarded(lambda: self._command("stop", self.service.stop)))
+        self.b_once.on_click(self._guarded(lambda: self._command("one shot", self.service.shot)))
+        self.b_problem.on_click(self._guarded(lambda: self._apply(self._problem_patch(), "problem")))
+        self.b_sim.on_click(self._guarded(lambda: self._apply(self._sim_patch(), "simulation")))
+        self.b_fit_threshold.on_click(self._guarded(self._fit_threshold))
+        self.b_apply_threshold.on_click(self._guarded(self._apply_threshold))
+        for field in (self.d_algorithm, self.d_target, self.n_max_cycles, self.s_loading, self.s_transfer,
+                      self.s_step, self.c_lossless):
+            field.on_update(self._put_back_unless_allowed)
         self._sync_config(force=True)
+
+    # -- authority --------------------------------------------------------------------------------------------
+
+    def _allowed(self, event: Any) -> bool:
+        """True if the client behind a GUI event may change things (no token set, or it logged in)."""
+        if self._token is None or event.client_id in self._logged_in:
+            return True
+        self._say("read-only: log in with the server's token (LLRS_TOKEN) to run shots or change the configuration",
+                  error=True)
+        return False
+
+    def _guarded(self, action: Callable[[], None]) -> Callable[[Any], None]:
+        """A click handler that runs ``action`` only for a client allowed to change things."""
+
+        def on_click(event: Any) -> None:
+            if self._allowed(event):
+                action()
+
+        return on_click
+
+    def _put_back_unless_allowed(self, event: Any) -> None:
+        """A field moved by a client that may not change things goes back to the running configuration (the
+        fields are shared by every tab)."""
+        if event.client_id is not None and not self._allowed(event):
+            self._sync_config(force=True)
+
+    def login(self, client_id: int, token: str) -> bool:
+        """Let viser client ``client_id`` change things if ``token`` is the server's (constant-time check)."""
+        if self._token is not None and hmac.compare_digest(token.encode(), self._token.encode()):
+            self._logged_in.add(client_id)
+            return True
+        return False
+
+    def _login_panel(self, client: Any) -> None:
+        """A login field and button that only this client sees."""
+        with client.gui.add_folder("Log in to control"):
+            field = client.gui.add_text("Token", initial_value="", hint="LLRS_TOKEN of the server")
+            button = client.gui.add_button("Log in")
+            note = client.gui.add_markdown("read-only until you log in")
+
+        def log_in(event: Any) -> None:
+            ok = self.login(client.client_id, field.value)
+            field.value = ""
+            note.content = "logged in: the controls act" if ok else "wrong token; still read-only"
+
+        button.on_click(log_in)
 
     # -- controls ---------------------------------------------------------------------------------------------
 

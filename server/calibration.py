@@ -97,6 +97,7 @@ def psf_calibration(images: np.ndarray, config: SystemConfig) -> dict:
     """
     cam = config.camera
     nominal = psf_from_config(config)
+    calibrate_threshold(weighted_sums(images, nominal)).require_two_populations()  # a PSF is fitted to atoms
     fitted = fit_psf(images, config)
     binning = np.asarray(cam.binning, dtype=np.float64)
     to_sensor = lambda frame_xy: (frame_xy + 0.5) * binning - 0.5  # noqa: E731 - inverse of sensor_to_frame_px

@@ -22,7 +22,8 @@ from __future__ import annotations
 import json
 import math
 import uuid
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -33,11 +34,15 @@ import numpy as np
 from engine.config import ConfigError, SystemConfig, config_from_dict, deep_merge
 from engine.records import ShotRecord
 from engine.timing import STAGES
+from server.files import open_regular
 
 __all__ = [
     "GLOBALS",
     "RESULTS_GROUP",
+    "MAX_SHOT_FILE_BYTES",
     "ShotFileError",
+    "ShotFileHasResults",
+    "ShotFileMissing",
     "read_shot_globals",
     "read_shot_results",
     "run_shot_file",
@@ -67,10 +72,38 @@ GLOBALS: dict[str, tuple[str, ...]] = {
 }
 SPECIAL_GLOBALS = ("llrs_config", "llrs_enabled")
 
+#: Shot files hold a shot's instructions and, here, its results: far below this (images are not in them).
+MAX_SHOT_FILE_BYTES = 256 * 2**20
+
 
 class ShotFileError(RuntimeError):
     """A shot file that cannot be used: missing, not a labscript file, bad ``llrs_`` globals, or it already
     holds results. The message names the file and what is wrong."""
+
+
+class ShotFileMissing(ShotFileError):
+    """There is no shot file at that path."""
+
+
+class ShotFileHasResults(ShotFileError):
+    """The shot file already holds LLRS results (a shot file records one shot)."""
+
+
+@contextmanager
+def _open_h5(path: Path, mode: str) -> Iterator[h5py.File]:
+    """The shot file through a descriptor checked to be a regular file of bounded size (``server.files``),
+    so that a FIFO or a device named as a shot file is refused instead of hanging the server."""
+    try:
+        fh = open_regular(path, what="shot file", max_bytes=MAX_SHOT_FILE_BYTES, write=mode == "r+")
+    except FileNotFoundError:
+        raise ShotFileMissing(f"{path}: no such shot file (results are written into the shot file, never beside it)") from None
+    with fh:
+        try:
+            f = h5py.File(fh, mode)
+        except OSError:
+            raise ShotFileError(f"{path}: not an HDF5 file (a labscript shot file is one)") from None
+        with f:
+            yield f
 
 
 def _plain(value: Any) -> Any:
@@ -89,15 +122,10 @@ def _plain(value: Any) -> Any:
 def read_shot_globals(path: str | Path) -> dict[str, Any]:
     """Every global of a labscript shot file (the attributes of ``/globals``), as plain Python values."""
     path = Path(path)
-    try:
-        with h5py.File(path, "r") as f:
-            if "globals" not in f:
-                raise ShotFileError(f"{path}: no /globals group; is this a labscript shot file?")
-            return {name: _plain(value) for name, value in f["globals"].attrs.items()}
-    except FileNotFoundError:
-        raise ShotFileError(f"{path}: no such shot file") from None
-    except OSError as err:
-        raise ShotFileError(f"{path}: cannot read the shot file: {err}") from None
+    with _open_h5(path, "r") as f:
+        if "globals" not in f:
+            raise ShotFileError(f"{path}: no /globals group; is this a labscript shot file?")
+        return {name: _plain(value) for name, value in f["globals"].attrs.items()}
 
 
 def shot_overrides(globals_: Mapping[str, Any]) -> dict[str, Any]:
@@ -152,25 +180,16 @@ def _results_exist(f: h5py.File) -> bool:
 def _refuse_existing(f: h5py.File, path: Path) -> None:
     if _results_exist(f):
         g = f[RESULTS_GROUP]
-        raise ShotFileError(
+        raise ShotFileHasResults(
             f"{path} already holds LLRS results (shot {g.attrs.get('shot_id', '?')}, outcome "
             f"{_plain(g.attrs.get('outcome', '?'))}, written {_plain(g.attrs.get('written_at', '?'))}); a shot file "
             "records one shot and its results are never overwritten: compile a new shot file"
         )
 
 
-def _open_for_results(path: Path) -> h5py.File:
-    try:
-        return h5py.File(path, "r+")  # r+: the file must exist; results never go beside it
-    except FileNotFoundError:
-        raise ShotFileError(f"{path}: no such shot file (results are written into the shot file, never beside it)") from None
-    except OSError as err:
-        raise ShotFileError(f"{path}: cannot open the shot file for writing: {err}") from None
-
-
 def _write_group(path: Path, fill: Callable[[h5py.Group], None]) -> None:
     """Create ``/results/llrs`` atomically: fill a temporary group, then rename it."""
-    with _open_for_results(path) as f:
+    with _open_h5(path, "r+") as f:  # r+: the file must exist; results never go beside it
         _refuse_existing(f, path)
         results = f.require_group("results")
         tmp = f"llrs.partial-{uuid.uuid4().hex[:8]}"
@@ -252,20 +271,17 @@ def write_shot_fault(path: str | Path, message: str, *, config: SystemConfig | N
 def read_shot_results(path: str | Path) -> dict[str, Any]:
     """``/results/llrs`` as plain Python (attributes, datasets as arrays, ``stage_s`` as a dict)."""
     path = Path(path)
-    try:
-        with h5py.File(path, "r") as f:
-            if RESULTS_GROUP not in f:
-                raise ShotFileError(f"{path}: no LLRS results")
-            g = f[RESULTS_GROUP]
-            out: dict[str, Any] = {k: _plain(v) for k, v in g.attrs.items()}
-            for name, item in g.items():
-                if isinstance(item, h5py.Group):
-                    out[name] = {k: v[()] for k, v in item.items()}
-                else:
-                    out[name] = item[()]
-            return out
-    except FileNotFoundError:
-        raise ShotFileError(f"{path}: no such shot file") from None
+    with _open_h5(path, "r") as f:
+        if RESULTS_GROUP not in f:
+            raise ShotFileError(f"{path}: no LLRS results")
+        g = f[RESULTS_GROUP]
+        out: dict[str, Any] = {k: _plain(v) for k, v in g.attrs.items()}
+        for name, item in g.items():
+            if isinstance(item, h5py.Group):
+                out[name] = {k: v[()] for k, v in item.items()}
+            else:
+                out[name] = item[()]
+        return out
 
 
 def run_shot_file(
@@ -283,7 +299,7 @@ def run_shot_file(
     """
     path = Path(path)
     globals_ = read_shot_globals(path)
-    with _open_for_results(path) as f:
+    with _open_h5(path, "r+") as f:
         _refuse_existing(f, path)
     used = {k: v for k, v in globals_.items() if k.startswith("llrs_")}
     config = shot_config(base_config, globals_, source=str(path))

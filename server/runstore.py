@@ -27,6 +27,7 @@ import json
 import queue
 import threading
 import time
+from collections import OrderedDict
 from pathlib import Path
 
 import h5py
@@ -36,6 +37,9 @@ from engine.config import SystemConfig
 from engine.records import ShotRecord
 from engine.targets import build_target
 from engine.timing import STAGES
+
+#: Configurations the store remembers for the shots still queued (see ``RunStore.note_config``).
+CONFIGS_KEPT = 16
 
 __all__ = ["RunStore"]
 
@@ -133,7 +137,7 @@ class RunStore:
     def __init__(self, directory: str | Path) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._configs: dict[str, SystemConfig] = {}
+        self._configs: OrderedDict[str, SystemConfig] = OrderedDict()  # the latest, for the shots queued
         self._queue: queue.Queue[ShotRecord | None] = queue.Queue()
         self._current: _RunFile | None = None
         self._lock = threading.Lock()
@@ -148,12 +152,19 @@ class RunStore:
             return self._current.path if self._current is not None else None
 
     def write_errors(self) -> tuple[int, str | None]:
-        """How many shots could not be written, and why the last one failed."""
+        """How many shots could not be written, and why the last one failed (``None`` once a later shot was
+        written: the fault is over, the count stays)."""
         with self._lock:
             return self.failed_writes, (self.errors[-1] if self.errors else None)
 
     def note_config(self, config: SystemConfig) -> None:
-        self._configs[config.digest()] = config
+        """A configuration shots will run under (the latest ``CONFIGS_KEPT``: shots are written within
+        moments, so older ones are no longer needed; keeping all would grow without bound)."""
+        with self._lock:
+            self._configs[config.digest()] = config
+            self._configs.move_to_end(config.digest())
+            while len(self._configs) > CONFIGS_KEPT:
+                self._configs.popitem(last=False)
 
     def put(self, record: ShotRecord) -> None:
         """Queue a finished shot for writing; returns at once (called on the engine thread)."""
@@ -203,10 +214,13 @@ class RunStore:
                 if record is None:
                     return
                 try:
-                    config = self._configs.get(record.config_digest)
+                    with self._lock:
+                        config = self._configs.get(record.config_digest)
                     if config is not None and config.sim.faults.disk_full:
                         raise OSError(errno.ENOSPC, "No space left on device (injected: sim.faults.disk_full)")
                     self._file_for(record.config_digest).append(record)
+                    with self._lock:
+                        self.errors.clear()
                 except (OSError, KeyError, ValueError) as err:
                     with self._lock:
                         self.errors.append(f"shot {record.shot_id} not recorded: {type(err).__name__}: {err}")

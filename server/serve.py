@@ -5,9 +5,11 @@ writer, viser's websocket thread and the dashboard's drawing thread; uvicorn run
 thread's event loop and owns Ctrl-C / SIGTERM: when it returns, the dashboard and the engine are stopped and
 the run file is closed.
 
-Security: without ``LLRS_TOKEN`` anyone who can reach the port can run shots, so the server binds only to a
-loopback address unless a token is set; with a token every mutating route needs ``Authorization: Bearer``.
-CORS stays closed unless origins are named with ``--cors-origin``.
+Security (README, "Security"): without ``LLRS_TOKEN`` anyone who can reach the port can run shots, so the
+server binds only to a loopback address unless a token is set, and then answers only to loopback host names;
+with a token every mutating route needs ``Authorization: Bearer`` and the dashboard's controls need the token
+too. CORS stays closed unless origins are named with ``--cors-origin``. Files named by clients come only from
+``--tone-dir`` and ``--shot-dir`` (``server.files``).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import argparse
 import asyncio
 import ipaddress
 import os
+import resource
 import signal
 import socket
 import sys
@@ -53,11 +56,23 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # t
     p.add_argument("--host", default="127.0.0.1", help="address to bind the API and the dashboard to (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8000, help="API port (default 8000; 0 picks a free one)")
     p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080; 0 picks a free one)")
+    p.add_argument("--dashboard-host", default=None,
+                   help="address to bind the dashboard to (default: --host); e.g. 127.0.0.1 to keep the dashboard "
+                   "on this machine while the API serves the lab network")
     p.add_argument("--runs-dir", default="runs", help="where the HDF5 run files go (default ./runs)")
     p.add_argument("--pause", type=float, default=0.5, help="pause between continuous shots in seconds (default 0.5)")
     p.add_argument("--idle", action="store_true", help="do not start shots at once; wait for a command")
     p.add_argument("--no-dashboard", action="store_true", help="serve the API only")
     p.add_argument("--cors-origin", action="append", default=[], help="allow browsers on this origin to call the API (repeatable)")
+    p.add_argument("--trusted-host", action="append", default=[],
+                   help="a Host name the server answers to (repeatable); without a token only loopback names are "
+                   "answered, with a token any unless these are given")
+    p.add_argument("--tone-dir", type=Path, default=None,
+                   help="directory that tone CSVs (array.*_tones.csv) named in configurations sent to the API must "
+                   "lie in (default: none, so the API accepts no new tone file)")
+    p.add_argument("--shot-dir", type=Path, default=None,
+                   help="directory that labscript shot files sent to POST /api/labscript must lie in "
+                   "(default: none, so the route refuses every file)")
     p.add_argument("--engine", choices=("process", "thread"), default="process",
                    help="run the engine in a process of its own (default: its latency does not suffer from API "
                    "traffic) or on a thread of the server's process")
@@ -110,6 +125,18 @@ def engine_cpu_arg(value: str) -> int | None:
     return cpu
 
 
+#: Connections and requests uvicorn serves at once; beyond it answers 503 at once instead of queueing.
+MAX_CONNECTIONS = 512
+
+
+def _raise_open_file_limit() -> None:
+    """Let this process hold as many descriptors as the system allows it (the soft limit is often 1024), so
+    that a flood of connections is answered 503 by uvicorn instead of failing every accept()."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or hard > soft:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (hard if hard != resource.RLIM_INFINITY else max(soft, 65536), hard))
+
+
 def _say(text: str) -> None:
     print(text, flush=True)
 
@@ -129,6 +156,11 @@ def main(args: argparse.Namespace) -> int:
             "  so that every mutating request needs 'Authorization: Bearer $LLRS_TOKEN', or bind to 127.0.0.1.",
             file=sys.stderr,
         )
+        return 2
+    dashboard_host = args.dashboard_host or args.host
+    if not is_loopback(dashboard_host) and token is None:
+        print(f"llrs serve: refusing to bind the dashboard to {dashboard_host} without a token (set LLRS_TOKEN)",
+              file=sys.stderr)
         return 2
     try:
         if args.config is None and not DEFAULT_CONFIG.exists():  # installed without the examples
@@ -150,11 +182,13 @@ def main(args: argparse.Namespace) -> int:
     api_port = sock.getsockname()[1]
     shown_host = f"[{args.host}]" if family == socket.AF_INET6 else args.host
     api_url = f"http://{shown_host}:{api_port}"
+    _raise_open_file_limit()
 
     import uvicorn
 
     from server.app import create_app
     from server.runstore import RunStore
+    from server.security import LOOPBACK_HOSTS
     from server.service import LabService
 
     devices = f"camera {config.devices.camera}, AWG {config.devices.awg}"
@@ -167,6 +201,8 @@ def main(args: argparse.Namespace) -> int:
         pause_s=args.pause,
         engine_factory=factory,
         config=config,
+        tone_dir=args.tone_dir,
+        shot_dir=args.shot_dir,
     )
     dashboard = None
     try:
@@ -175,13 +211,22 @@ def main(args: argparse.Namespace) -> int:
         if not args.no_dashboard:
             from frontend.dashboard import Dashboard
 
-            dashboard = Dashboard(service, host=args.host, port=args.dashboard_port, api_url=api_url)
+            dashboard = Dashboard(service, host=dashboard_host, port=args.dashboard_port, api_url=api_url, token=token)
             dashboard_port = dashboard.start()
+        # Without a token the server is loopback-only, and answers only to loopback names (a page of another
+        # site cannot reach it by pointing a DNS name of its own at 127.0.0.1).
+        trusted: tuple[str, ...] | None = (*LOOPBACK_HOSTS, args.host.strip("[]").lower(), *args.trusted_host)
+        if token is not None and not args.trusted_host:
+            trusted = None
         app = create_app(
-            service=service, token=token, cors_origins=tuple(args.cors_origin), dashboard_port=dashboard_port
+            service=service, token=token, cors_origins=tuple(args.cors_origin), trusted_hosts=trusted,
+            dashboard_port=dashboard_port,
         )
         server = uvicorn.Server(
-            uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=3, ws_ping_interval=20)
+            uvicorn.Config(
+                app, log_level="warning", timeout_graceful_shutdown=3, ws_ping_interval=20,
+                limit_concurrency=MAX_CONNECTIONS, timeout_keep_alive=5,
+            )
         )
         fault = service.status().reason
         if fault is not None:
@@ -190,13 +235,17 @@ def main(args: argparse.Namespace) -> int:
             service.run()
         _say("")
         if dashboard_port is not None:
-            _say(f"  dashboard   http://{shown_host}:{dashboard_port}/")
+            shown_dashboard = f"[{dashboard_host}]" if ":" in dashboard_host else dashboard_host
+            _say(f"  dashboard   http://{shown_dashboard}:{dashboard_port}/"
+                 + ("   (read-only until a tab logs in with the token)" if token else ""))
         _say(f"  API         {api_url}/   (docs {api_url}/docs, live cycles ws://{shown_host}:{api_port}/api/live)")
         where = "a thread of this process" if args.engine == "thread" else "its own process" + (
             f", pinned to core {args.engine_cpu} (the server keeps the others)" if args.engine_cpu is not None else "")
         _say(f"  engine      {where}")
         _say(f"  run files   {Path(args.runs_dir).resolve()}/")
-        _say(f"  token       {'required on mutating routes (LLRS_TOKEN)' if token else 'none (loopback only)'}")
+        _say(f"  tone files  {f'{args.tone_dir.resolve()}/ (--tone-dir)' if args.tone_dir else 'none accepted over the API (--tone-dir)'}")
+        _say(f"  shot files  {f'{args.shot_dir.resolve()}/ (--shot-dir)' if args.shot_dir else 'none accepted (--shot-dir)'}")
+        _say(f"  token       {'required on mutating routes and the dashboard controls (LLRS_TOKEN)' if token else 'none (loopback only)'}")
         _say(f"  shots       {'idle: POST /api/run or the dashboard starts them' if args.idle else 'running continuously'}")
         _say("Ctrl-C stops the server.")
         # uvicorn handles Ctrl-C/SIGTERM while it serves, then re-raises the signal it caught once it has

@@ -1,7 +1,7 @@
 """The lab service: the one command interface the REST API and the dashboard both drive.
 
-It wraps an engine host, an ``EngineThread`` or an ``EngineProcess`` (``engine.process``: the engine in its
-own process, on its own core, which is how ``llrs serve`` runs it), and adds what a lab server needs around it:
+It wraps an engine host (``engine.host.EngineHost``: an ``EngineThread``, or an ``EngineProcess``, the engine
+in its own process on its own core, which is how ``llrs serve`` runs it), and adds what a lab server needs around it:
 continuous shots with a pause between them, one-off shots with a per-shot configuration, validated config
 changes applied between shots, the shot history in memory and on disk, and listeners for live data.
 
@@ -26,31 +26,51 @@ import json
 import sys
 import threading
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from concurrent.futures import Future
-from operator import methodcaller
-from typing import TYPE_CHECKING, Any
+from concurrent.futures import TimeoutError as FutureTimeout
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
 
 from engine.config import SystemConfig, deep_merge
-from engine.process import EngineProcess, EngineProcessDied, shot_with_frame
+from engine.host import EngineCommands, EngineHost
+from engine.process import EngineProcessDied
 from engine.records import Outcome, ShotRecord
 from server.calibration import psf_calibration, threshold_calibration
+from server.files import confine, open_regular
 from server.models import DevicesOut, StatusOut, shot_summary
 from server.runstore import RunStore
 
-if TYPE_CHECKING:
-    from engine.engine import EngineThread
-
-    EngineHost = EngineThread | EngineProcess
-
-__all__ = ["CalibrationConflict", "ConfigRejected", "DevicesUnavailable", "LabService", "NotArmed", "deep_merge"]
+__all__ = [
+    "CalibrationConflict",
+    "CalibrationFailed",
+    "ConfigRejected",
+    "DevicesUnavailable",
+    "EngineBusy",
+    "LabService",
+    "NotArmed",
+    "UnknownCalibration",
+    "deep_merge",
+]
 
 
 #: GIL switch interval while a lab service runs (see ``LabService.start``).
 SWITCH_INTERVAL_S = 2e-4
+
+#: How long a command waits for the engine (a shot or calibration in progress) before it is refused: a
+#: request must not wait for minutes and then act long after its client gave up.
+COMMAND_WAIT_S = 30.0
+
+#: A tone CSV holds one short ``alpha,nu,phi`` line per trap (at most 1024 per axis: about 50 kB).
+MAX_TONE_FILE_BYTES = 256 * 2**10
+
+#: Frames one calibration may acquire, in bytes of uint16 pixels (each process holds them, and the fits
+#: make float copies): 40 frames of a 1024 x 1024 ROI fit, 500 frames of 4096 x 4096 do not.
+MAX_CALIBRATION_BYTES = 128 * 2**20
 
 
 def _devices_reason(err: BaseException) -> str:
@@ -77,28 +97,47 @@ class DevicesUnavailable(RuntimeError):
     runs no shot until a configuration whose devices open is applied."""
 
 
-class _NoEngine:
-    """Stands in for the engine while the devices cannot be opened (or its process died): every command
-    says why."""
+class _NoEngine(EngineCommands):
+    """An ``EngineHost`` that stands in for the engine while the devices cannot be opened (or its process
+    died): every command says why."""
 
     config = None
     has_trigger_input = False
     alive = False
+    shares_interpreter = False
 
     def __init__(self, reason: str) -> None:
-        self.reason = reason
+        self.exit_reason = reason
+
+    def start(self) -> _NoEngine:
+        raise DevicesUnavailable(self.exit_reason)
 
     def submit(self, command: Callable[[Any], Any]) -> Future[Any]:
         future: Future[Any] = Future()
-        future.set_exception(DevicesUnavailable(self.reason))
+        future.set_exception(DevicesUnavailable(self.exit_reason))
         return future
 
-    def close(self) -> None:
+    def close(self, *, timeout_s: float = 10.0) -> None:
         pass
+
+
+class EngineBusy(RuntimeError):
+    """The engine stayed busy (a shot, a calibration) for longer than a command may wait; nothing was done."""
 
 
 class CalibrationConflict(RuntimeError):
     """A calibration cannot be applied: the configuration changed since its frames were taken."""
+
+
+class CalibrationFailed(RuntimeError):
+    """The calibration frames could not be fitted (e.g. no atoms were loaded in them)."""
+
+
+class UnknownCalibration(LookupError):
+    """No calibration with that id is held."""
+
+    def __str__(self) -> str:
+        return f"no calibration {self.args[0]!r}"
 
 
 def _validate(data: Any) -> SystemConfig:
@@ -126,14 +165,25 @@ class LabService:
         history: int = 2000,
         engine_factory: Callable[[SystemConfig], EngineHost] | None = None,
         config: SystemConfig | None = None,
+        tone_dir: Path | None = None,
+        shot_dir: Path | None = None,
     ) -> None:
         """``engine_factory`` (with ``config``, the configuration ``engine_thread`` was built for) lets the
-        service survive devices that cannot be opened and re-open devices when ``devices`` changes."""
-        self._et: EngineHost | _NoEngine = engine_thread
+        service survive devices that cannot be opened and re-open devices when ``devices`` changes.
+
+        ``tone_dir``: the directory tone CSVs named in a submitted configuration must lie in; ``shot_dir``:
+        the one labscript shot files must lie in (``None``: such files are refused; see ``server.files``)."""
+        self._et: EngineHost = engine_thread
         self._factory = engine_factory
         self._initial_config = config
         self._store = store
+        self.tone_dir = tone_dir
+        self.shot_dir = shot_dir
         self.pause_s = pause_s
+        # Shot ids come from here, not from the engine, so they keep increasing when devices are re-opened
+        # on a new engine (the run store and the API key shots by id).
+        self._shot_ids = itertools.count()
+        self._shot_limit_s: float | None = None  # see _learn_shot_limit
         self._lock = threading.Lock()  # serializes commands to the engine
         self._state_lock = threading.Lock()  # guards the fields below
         self._history: deque[ShotRecord] = deque(maxlen=history)
@@ -165,18 +215,19 @@ class LabService:
         # GIL waits up to the switch interval (5 ms by default) for the holder to let go, so request handling
         # could add milliseconds to a cycle; 0.2 ms bounds that wait at a small cost in throughput. An engine
         # process has an interpreter of its own.
-        if not isinstance(self._et, EngineProcess):
+        if self._et.shares_interpreter:
             sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
         try:
-            self._et.start()  # type: ignore[union-attr]
+            self._et.start()
         except Exception as err:
             if self._factory is None or self._initial_config is None:
                 raise
             self._et = _NoEngine(_devices_reason(err))
             self._config = self._initial_config
-            self._fault = self._et.reason
+            self._fault = self._et.exit_reason
         else:
             self._config = self._et.config
+            self._learn_shot_limit()
         if self._store is not None:
             self._store.note_config(self._config)
         self._runner.start()
@@ -215,15 +266,15 @@ class LabService:
 
     def replace_config(self, config: SystemConfig | dict[str, Any]) -> SystemConfig:
         """Validate and apply a whole configuration between shots; on any error the running one stays."""
-        new = config if isinstance(config, SystemConfig) else _validate(config)
-        with self._lock:
+        new = self._checked_files(config if isinstance(config, SystemConfig) else _validate(config))
+        with self._engine_turn():
             self._apply(new)
         return new
 
     def patch_config(self, patch: dict[str, Any]) -> SystemConfig:
         """Deep-merge ``patch`` into the running configuration, validate, apply (see ``replace_config``)."""
-        with self._lock:
-            new = _validate(deep_merge(self.config.model_dump(mode="json"), patch))
+        with self._engine_turn():
+            new = self._checked_files(_validate(deep_merge(self.config.model_dump(mode="json"), patch)))
             self._apply(new)
         return new
 
@@ -287,7 +338,7 @@ class LabService:
 
         Raises ``NotArmed`` otherwise. Triggers are serialized like every shot.
         """
-        with self._lock:
+        with self._engine_turn():
             self._take_trigger()
             return self._one_shot("triggered shot")
 
@@ -296,11 +347,16 @@ class LabService:
 
         ``override`` is a partial configuration deep-merged into the running one for this shot only.
         """
-        with self._lock:
+        with self._engine_turn():
             if not override:
                 return self._one_shot("one shot")
             base = self.config
-            special = _validate(deep_merge(base.model_dump(mode="json"), override))
+            special = self._checked_files(_validate(deep_merge(base.model_dump(mode="json"), override)))
+            if special.devices != base.devices:
+                raise ConfigRejected(
+                    [{"loc": ["body", "config", "devices"], "type": "override_devices",
+                      "msg": "a one-shot override cannot change the devices; change them with PUT or PATCH /api/config"}]
+                )
             self._apply(special, remember=False)
             try:
                 return self._one_shot("one shot (config override)")
@@ -314,6 +370,8 @@ class LabService:
         """
         from server.labscript import run_shot_file
 
+        path = str(confine(path, self.shot_dir, what="shot file", option="--shot-dir"))
+
         def run(config: SystemConfig | None) -> ShotRecord:
             return self.shot(override=config.model_dump(mode="json") if config is not None else None)
 
@@ -323,22 +381,35 @@ class LabService:
 
     def acquire_images(self, n: int) -> np.ndarray:
         """``uint16[n, h, w]`` fresh frames from the engine's camera (between shots)."""
-        with self._lock:
+        with self._engine_turn():
             return self._acquire(n, "acquiring frames")
 
     def calibrate_threshold(self, *, images: int = 40) -> dict[str, Any]:
         """Acquire ``images`` frames and fit the occupancy threshold; kept under an id, not applied."""
-        with self._lock:
-            config = self.config
-            frames = self._acquire(images, f"calibrating the threshold ({images} frames)")
-        return self._keep_calibration(threshold_calibration(frames, config), config)
+        return self._calibrate("threshold", threshold_calibration, images)
 
     def calibrate_psf(self, *, images: int = 40) -> dict[str, Any]:
         """Acquire ``images`` frames and fit the PSF and trap lattice; kept under an id, not applied."""
-        with self._lock:
+        return self._calibrate("PSF", psf_calibration, images)
+
+    def _calibrate(self, kind: str, fit: Callable[[np.ndarray, SystemConfig], dict[str, Any]], images: int) -> dict[str, Any]:
+        """Acquire ``images`` frames (at most ``MAX_CALIBRATION_BYTES`` of them) and fit; ``CalibrationFailed``
+        when the frames cannot be fitted."""
+        with self._engine_turn():
             config = self.config
-            frames = self._acquire(images, f"calibrating the PSF ({images} frames)")
-        return self._keep_calibration(psf_calibration(frames, config), config)
+            frame_bytes = 2 * config.camera.roi_width_px * config.camera.roi_height_px
+            if images * frame_bytes > MAX_CALIBRATION_BYTES:
+                raise ConfigRejected(
+                    [{"loc": ["body", "images"], "type": "too_many_frames",
+                      "msg": f"{images} frames of {frame_bytes} bytes exceed {MAX_CALIBRATION_BYTES} bytes; "
+                      f"ask for at most {MAX_CALIBRATION_BYTES // frame_bytes} frames with this ROI"}]
+                )
+            frames = self._acquire(images, f"calibrating the {kind} ({images} frames)")
+        try:
+            result = fit(frames, config)
+        except ValueError as err:
+            raise CalibrationFailed(f"{kind} calibration failed: {err}") from None
+        return self._keep_calibration(result, config)
 
     def calibrations(self) -> list[dict[str, Any]]:
         """Calibrations held (newest last)."""
@@ -348,14 +419,14 @@ class LabService:
     def apply_calibration(self, calibration_id: str) -> dict[str, Any]:
         """Put a calibration's values into the running configuration (applied between shots).
 
-        ``KeyError``: no such id. ``CalibrationConflict``: the configuration changed since its frames were
+        ``UnknownCalibration``: no such id. ``CalibrationConflict``: the configuration changed since its frames were
         taken (calibrate again). Applying one that is already applied changes nothing.
         """
-        with self._lock:
+        with self._engine_turn():
             with self._state_lock:
                 cal = self._calibrations.get(calibration_id)
                 if cal is None:
-                    raise KeyError(calibration_id)
+                    raise UnknownCalibration(calibration_id)
                 if cal["applied"]:
                     return dict(cal)
             if cal["config_digest"] != self.config.digest():
@@ -451,30 +522,63 @@ class LabService:
 
     # -- internals --------------------------------------------------------------------------------------------
 
+    @contextmanager
+    def _engine_turn(self) -> Iterator[None]:
+        """The engine lock for one command, waited for at most ``COMMAND_WAIT_S`` (``EngineBusy`` then)."""
+        if not self._lock.acquire(timeout=COMMAND_WAIT_S):
+            with self._state_lock:
+                doing = ", ".join(self._activity) or "a command"
+            raise EngineBusy(f"the engine has been busy ({doing}) for over {COMMAND_WAIT_S:g} s; nothing was done, try again")
+        try:
+            yield
+        finally:
+            self._lock.release()
+
     def _require_engine(self) -> None:
         self._notice_dead_engine()
         if isinstance(self._et, _NoEngine):
-            raise DevicesUnavailable(self._et.reason)
+            raise DevicesUnavailable(self._et.exit_reason or "no engine")
 
-    def _call(self, command: Callable[[Any], Any]) -> Any:
-        """``command(engine)`` on the engine, waited for; an engine process that died says so as
-        ``DevicesUnavailable`` (503 over REST) rather than as an internal error."""
+    def _wait(self, future: Future[Any], *, timeout_s: float | None = None) -> Any:
+        """The result of an engine command; an engine process that died says so as ``DevicesUnavailable``
+        (503 over REST) rather than as an internal error. A command still running after ``timeout_s``
+        means an engine stuck in a device call: it is stopped (``_abandon_engine``)."""
         try:
-            return self._et.submit(command).result()
+            return future.result(timeout=timeout_s)
+        except FutureTimeout:
+            reason = (
+                f"watchdog: the engine did not finish a shot within {timeout_s:.3g} s (twice its own watchdog, "
+                "plus a second): it was stopped; the card keeps playing its hold waveform. Apply a configuration "
+                "(PUT /api/config) to start a new engine"
+            )
+            self._abandon_engine(reason)
+            raise DevicesUnavailable(reason) from None
         except EngineProcessDied:
             self._notice_dead_engine()
-            raise DevicesUnavailable(getattr(self._et, "reason", "the engine process died")) from None
+            raise DevicesUnavailable(self._et.exit_reason or "the engine process died") from None
 
     def _notice_dead_engine(self) -> None:
         """An engine process that died becomes a ``_NoEngine`` with its reason: the server reports it and a
         configuration applied later starts a new engine (``_apply`` re-opens)."""
-        if not isinstance(self._et, _NoEngine) and not getattr(self._et, "alive", True):
-            reason = getattr(self._et, "exit_reason", None) or "the engine process is gone"
+        if not isinstance(self._et, _NoEngine) and not self._et.alive:
+            reason = self._et.exit_reason or "the engine is gone"
             reason += "; apply a configuration (PUT /api/config) to start a new engine"
             self._et.close()
             self._et = _NoEngine(reason)
             with self._state_lock:
                 self._fault = reason
+
+    def _learn_shot_limit(self) -> None:
+        """How long a shot may take before the service gives up on the engine: twice the engine's own
+        watchdog (which ends a slow shot between cycles) plus a second, for a device call that never returns."""
+        self._shot_limit_s = 2 * float(self._wait(self._et.shot_watchdog_s())) + 1.0
+
+    def _abandon_engine(self, reason: str) -> None:
+        """Stop an engine that is stuck (its process is killed; a stuck thread is left behind)."""
+        self._et.close(timeout_s=1.0)
+        self._et = _NoEngine(reason)
+        with self._state_lock:
+            self._fault = reason
 
     def _reopen(self, config: SystemConfig) -> None:
         """Open the devices ``config`` names on a new engine host; keep the old one if they do not open."""
@@ -491,26 +595,52 @@ class LabService:
         with self._state_lock:
             self._fault = None
 
+    def _checked_files(self, config: SystemConfig) -> SystemConfig:
+        """``config`` with each tone CSV that differs from the running configuration's checked (inside
+        ``tone_dir``, a regular file, at most ``MAX_TONE_FILE_BYTES``) and named by its resolved path, so the
+        engine reads exactly the file checked here. A CSV already running was put there by the operator."""
+        running = self._config.array if self._config is not None else None
+        changes: dict[str, Any] = {}
+        for axis in ("x_tones", "y_tones"):
+            csv = getattr(config.array, axis).csv
+            if csv is None or (running is not None and csv == getattr(running, axis).csv):
+                continue
+            try:
+                path = confine(csv, self.tone_dir, what="tone file", option="--tone-dir")
+                open_regular(path, what="tone file", max_bytes=MAX_TONE_FILE_BYTES).close()
+            except (ValueError, FileNotFoundError) as err:
+                msg = str(err) if not isinstance(err, FileNotFoundError) else f"tone file {csv!r}: no such file"
+                raise ConfigRejected([{"loc": ["body", "array", axis, "csv"], "msg": msg, "type": "file_refused"}]) from None
+            changes[axis] = getattr(config.array, axis).model_copy(update={"csv": str(path)})
+        if not changes:
+            return config
+        return config.model_copy(update={"array": config.array.model_copy(update=changes)})
+
     def _apply(self, config: SystemConfig, *, remember: bool = True) -> None:
-        """Apply on the engine (between shots); raise ``ConfigRejected`` if the engine refuses it.
+        """Apply on the engine (between shots); raise ``ConfigRejected`` if the engine refuses it, for whatever
+        reason (an overflow in a model, an unreadable tone file): the running configuration then stays.
 
         With an engine factory, a change of ``devices`` (or devices that failed to open before) re-opens the
-        devices on a new engine host; if they do not open, the running engine and config stay."""
-        if self._store is not None:
-            self._store.note_config(config)
+        devices on a new engine host; if they do not open, the running engine and config stay. The run store
+        learns a configuration only once the engine runs it."""
         self._notice_dead_engine()
         reopen = isinstance(self._et, _NoEngine) or (
             self._factory is not None and self._config is not None and config.devices != self._config.devices
         )
         if reopen and self._factory is not None:
             self._reopen(config)
-            if remember:
-                self._config = config
-            return
-        try:
-            self._call(methodcaller("apply", config))
-        except (ValueError, KeyError, NotImplementedError) as err:
-            raise ConfigRejected([{"loc": ["body"], "msg": f"{type(err).__name__}: {err}", "type": "engine_refused"}]) from None
+        else:
+            try:
+                self._wait(self._et.configure(config))
+            except DevicesUnavailable:
+                raise
+            except Exception as err:
+                text = f"{type(err).__name__}: {err}"
+                text = text if len(text) <= 500 else text[:500] + "..."
+                raise ConfigRejected([{"loc": ["body"], "msg": text, "type": "engine_refused"}]) from None
+        self._learn_shot_limit()
+        if self._store is not None:
+            self._store.note_config(config)
         if remember:
             self._config = config
 
@@ -537,7 +667,7 @@ class LabService:
     def _acquire(self, n: int, what: str) -> np.ndarray:
         done = self._busy(what)
         try:
-            frames = self._call(methodcaller("acquire_images", n))
+            frames = self._wait(self._et.acquire_images(n))
         finally:
             done()
         return np.asarray(frames)
@@ -559,7 +689,7 @@ class LabService:
         """One shot on the engine, then the bookkeeping and the listeners on this (the caller's) thread."""
         done = self._busy(what)
         try:
-            record, frame = self._call(shot_with_frame)
+            record, frame = self._wait(self._et.run_shot(next(self._shot_ids)), timeout_s=self._shot_limit_s)
         finally:
             done()
         self._on_shot(record, frame)
@@ -592,7 +722,7 @@ class LabService:
 
     def _wait_hardware_trigger(self) -> bool:
         """Armed on a hardware trigger: wait a little for the line on the engine; True if it fired."""
-        fired = self._call(methodcaller("wait_trigger", timeout_s=0.2))
+        fired = self._wait(self._et.wait_trigger(timeout_s=0.2))
         return bool(fired)
 
     def _run_loop(self) -> None:

@@ -63,6 +63,12 @@ class FakeEngine:
         self._guard = threading.Lock()
         self.apply(config)
 
+    has_trigger_input = False  # like an AWG without a trigger line
+    watchdog_s = 60.0  # what ``shot_watchdog_s`` answers
+
+    def shot_watchdog_s(self) -> float:
+        return self.watchdog_s
+
     def apply(self, config: SystemConfig) -> None:
         if config.solver.algorithm == "refuse":
             raise ValueError("unknown solver algorithm 'refuse'")
@@ -77,15 +83,15 @@ class FakeEngine:
             self.max_in_shot = max(self.max_in_shot, self.in_shot)
         try:
             time.sleep(self.shot_s)
-            return self._shot()
+            return self._shot(self.shots_done if shot_id is None else shot_id)
         finally:
             with self._guard:
                 self.in_shot -= 1
 
-    def _shot(self) -> ShotRecord:
+    def _shot(self, shot_id: int) -> ShotRecord:
         cfg = self.config
         record = ShotRecord(
-            shot_id=self.shots_done, config_digest=cfg.digest(), algorithm=cfg.solver.algorithm, target=self.target
+            shot_id=shot_id, config_digest=cfg.digest(), algorithm=cfg.solver.algorithm, target=self.target
         )
         loaded = self.rng.random(self.target.shape) < cfg.sim.loading_probability
         states = [loaded]

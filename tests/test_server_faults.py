@@ -31,7 +31,9 @@ def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, 
         return Engine(config, devices, lab=lab)
 
     runs = tmp_path_factory.mktemp("runs")
-    service = LabService(engine_thread=EngineThread(build), store=RunStore(runs), pause_s=0.0)
+    service = LabService(
+        engine_thread=EngineThread(build), store=RunStore(runs), pause_s=0.0, shot_dir=tmp_path_factory.mktemp("shots")
+    )
     service.start()
     with TestClient(create_app(service=service)) as client:
         yield client, runs, service
@@ -120,11 +122,11 @@ def test_full_disk_keeps_shots_running_and_says_so(api) -> None:
     assert shots_on_disk(runs) >= before + 1
 
 
-def test_labscript_shot_file_over_rest(api, tmp_path: Path) -> None:
-    """The sequencer hands the server a shot file; the shot's results land in that file, once."""
-    client, _, _ = api
+def test_labscript_shot_file_over_rest(api) -> None:
+    """The sequencer hands the server a shot file (in its --shot-dir); the shot's results land in that file, once."""
+    client, _, service = api
     set_faults(client)
-    shot_file = tmp_path / "0001_shot.h5"
+    shot_file = service.shot_dir / "0001_shot.h5"
     with h5py.File(shot_file, "w") as f:
         g = f.create_group("globals")
         g.attrs["llrs_max_cycles"] = 3
@@ -139,6 +141,6 @@ def test_labscript_shot_file_over_rest(api, tmp_path: Path) -> None:
         assert (outcome.decode() if isinstance(outcome, bytes) else outcome) == shot["outcome"]
     again = client.post("/api/labscript", json={"path": str(shot_file)})
     assert again.status_code == 409 and "already holds" in again.json()["detail"]
-    missing = client.post("/api/labscript", json={"path": str(tmp_path / "nope.h5")})
+    missing = client.post("/api/labscript", json={"path": str(service.shot_dir / "nope.h5")})
     assert missing.status_code == 404 and "no such shot file" in missing.json()["detail"]
     assert client.get("/api/config").json()["loop"]["max_cycles"] != 3  # the shot's globals were for that shot only

@@ -58,3 +58,9 @@ def test_bad_engine_core_is_a_clear_error(value: str, message: str) -> None:
     r = _serve("--engine-cpu", value, "--port", "0")
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert "starting the engine" not in r.stdout
+
+
+def test_refuses_a_reachable_dashboard_without_a_token() -> None:
+    r = _serve("--dashboard-host", "0.0.0.0", "--port", "0")
+    assert r.returncode == 2 and "refusing to bind the dashboard" in r.stderr
+    assert "starting the engine" not in r.stdout

@@ -1,0 +1,510 @@
+"""The move model: what AOD tones do to atoms in one waveform slot, written once for the validator and the world.
+
+The plan validator (``engine/solvers/validate.py``, losses off) and the simulated lab
+(``drivers/sim/world.py``, tracks decoded from the AWG's samples, losses drawn from its random numbers)
+both call these kernels, so a plan the validator accepts is exactly a plan the simulated lab carries out.
+
+A slot is described per axis by **tone tracks** ``[m, 4]`` rows ``(start site, end site, start amplitude
+fraction, end amplitude fraction)`` (float32, the format ``drivers/sim/decode.py`` reports).
+
+``slm`` trap source (static traps on an ``ny x nx`` grid, crossed AODs): the tweezers are the product set
+y track i x x track j, at every intersection, loaded or not; a tweezer is at full depth where
+``amp_y * amp_x >= full_fraction``. Per slot:
+
+1. a held atom whose site no full-depth tweezer covers at the start is **dropped** (lost);
+2. a loaded tweezer that moves carries its atom one **step** (may lose it);
+3. at the end of the slot, per tweezer:
+   - loaded, over an occupied static trap: **collision** (light-assisted; both atoms lost);
+   - loaded, ramping down: **implant** into the trap below (a transfer, may lose it);
+   - loaded, still on: keeps holding the atom;
+   - empty, at full depth over an occupied static trap: takes the atom (a transfer, may lose it). If the
+     tweezer ramped up there this is a **pick-up** (an extract); if it was already at full depth and arrived
+     (or sat) there it is a **capture**: the atom now moves with the tweezer (a **drag**) until it ramps down.
+
+``aod`` trap source (a 1D chain whose traps are the x tones): an atom follows the track that starts on its
+site at full depth (a step when it moves); a track that fades out holding an atom **releases** it (lost); an
+atom no track starts on is **dropped**; two atoms arriving at one site **collide**.
+
+Events are summed into an ``int64[N_EVENTS]`` array (indices ``EV_*``); the ``EV_FIRST_*`` entries hold the
+flat index of the first site where a fault happened (-1 if none), for the validator's messages. Random
+numbers are read from a pre-drawn buffer ``u`` from position ``pos`` (the world's ``_Uniforms``): step draws
+in tweezer order first, then transfer draws in tweezer order, one per draw that the loss model asks for.
+
+With ``track_ids`` the kernels also carry atom identities (``static_id``, ``held_id``: -1 where empty) and
+count per atom (``atom_stats[a]``: steps, pick-ups + captures, captures) for the validator's accounting.
+The plain-numpy twins (``*_reference``) are the readable statement of the same rules, kept to test the
+kernels against.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT
+
+__all__ = [
+    "EV_CAPTURED", "EV_DRAGGED", "EV_FIRST_CAPTURE", "EV_FIRST_COLLISION", "EV_FIRST_DROP", "EV_IMPLANTED",
+    "EV_LOST_COLLISION", "EV_LOST_DROPPED", "EV_LOST_RELEASED", "EV_LOST_STEP", "EV_LOST_TRANSFER",
+    "EV_PICKED", "EV_STEPS", "N_EVENTS", "STAT_CAPTURES", "STAT_PICKUPS", "STAT_STEPS", "MoveState",
+    "chain_slot", "chain_slot_reference", "new_events", "operation_tracks", "replay_operations",
+    "tweezer_slot", "tweezer_slot_reference",
+]  # fmt: skip
+
+EV_PICKED = 0  # atoms taken by a tweezer ramping up over them (extract)
+EV_CAPTURED = 1  # atoms taken by a full-depth tweezer arriving (or sitting) over them
+EV_IMPLANTED = 2  # atoms left in a static trap by a tweezer ramping down
+EV_STEPS = 3  # one-site moves of held atoms
+EV_DRAGGED = 4  # captured atoms that then moved at least one site
+EV_LOST_TRANSFER = 5
+EV_LOST_STEP = 6
+EV_LOST_COLLISION = 7
+EV_LOST_DROPPED = 8  # held atoms no tweezer holds any more (slm), atoms no tone starts on (aod)
+EV_LOST_RELEASED = 9  # aod chain: a tone fading out while it holds an atom
+EV_FIRST_COLLISION = 10
+EV_FIRST_CAPTURE = 11
+EV_FIRST_DROP = 12  # first dropped or released atom
+N_EVENTS = 13
+
+STAT_STEPS = 0
+STAT_PICKUPS = 1  # pick-ups and captures: every time the atom was taken into a tweezer
+STAT_CAPTURES = 2
+
+#: held_mark values: how a held atom got into its tweezer
+_MARK_PICKED = 0
+_MARK_CAPTURED = 1
+_MARK_DRAGGED = 2
+
+
+def new_events() -> np.ndarray:
+    ev = np.zeros(N_EVENTS, dtype=np.int64)
+    ev[EV_FIRST_COLLISION:] = -1
+    return ev
+
+
+class MoveState:
+    """Atoms in static traps and tweezers plus the kernels' scratch, allocated once per array size.
+
+    ``static``/``held``: ``bool[ny, nx]`` (held atoms sit at their tweezer's site); ``held_mark``: how each
+    held atom was taken (for the drag count); ``static_id``/``held_id``/``atom_stats``: identities and
+    per-atom counts, used only when a kernel runs with ``track_ids``.
+    """
+
+    def __init__(self, ny: int, nx: int, n_atoms: int = 0) -> None:
+        self.static = np.zeros((ny, nx), dtype=np.bool_)
+        self.held = np.zeros((ny, nx), dtype=np.bool_)
+        self.held_mark = np.zeros((ny, nx), dtype=np.int8)
+        self.static_id = np.full((ny, nx), -1, dtype=np.int64)
+        self.held_id = np.full((ny, nx), -1, dtype=np.int64)
+        self.atom_stats = np.zeros((n_atoms, 3), dtype=np.int64)
+        self.covered = np.zeros((ny, nx), dtype=np.bool_)
+        self.tweezer_flags = np.zeros((ny * nx, 4), dtype=np.bool_)
+        self.tweezer_id = np.full(ny * nx, -1, dtype=np.int64)
+        self.tweezer_mark = np.zeros(ny * nx, dtype=np.int8)
+        self.chain_scratch = np.zeros((3, nx), dtype=np.int64)
+        self.y_tracks = np.zeros((ny, 4), dtype=np.float32)
+        self.x_tracks = np.zeros((2 * nx, 4), dtype=np.float32)  # a chain slot: a track per site + fade-ins
+
+    def load(self, occupancy: np.ndarray) -> None:
+        """Atoms at ``occupancy``, numbered in row-major order; nothing held; per-atom counts zeroed."""
+        occ = np.asarray(occupancy, dtype=bool)
+        self.static[:] = occ
+        self.held[:] = False
+        self.held_mark[:] = 0
+        self.static_id[:] = -1
+        self.held_id[:] = -1
+        n = int(occ.sum())
+        self.static_id[occ] = np.arange(n)
+        self.atom_stats = np.zeros((n, 3), dtype=np.int64)
+
+
+# --- crossed AODs over static traps ----------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def tweezer_slot(
+    yt: np.ndarray, xt: np.ndarray, full_fraction: float,
+    static: np.ndarray, held: np.ndarray, held_mark: np.ndarray,
+    static_id: np.ndarray, held_id: np.ndarray, atom_stats: np.ndarray, track_ids: bool,
+    covered: np.ndarray, flags: np.ndarray, tw_id: np.ndarray, tw_mark: np.ndarray,
+    u: np.ndarray, pos: int, draw_transfer: bool, p_transfer: float, draw_step: bool, p_step: float,
+    events: np.ndarray,
+) -> int:  # fmt: skip
+    """One slot of product-set tweezers (tweezer t = y track i x x track j, t = i * mx + j). Returns ``pos``.
+
+    ``flags[t]`` columns: full depth at start, at end, loaded, moved. Scratch: ``covered``, ``tw_id``,
+    ``tw_mark`` (at least ``my * mx`` rows).
+    """
+    ny, nx = static.shape
+    my = yt.shape[0]
+    mx = xt.shape[0]
+    full = np.float32(full_fraction)
+    n = my * mx
+    covered[:, :] = False
+    for i in range(my):
+        for j in range(mx):
+            t = i * mx + j
+            flags[t, 0] = np.float32(yt[i, 2] * xt[j, 2]) >= full
+            flags[t, 1] = np.float32(yt[i, 3] * xt[j, 3]) >= full
+            flags[t, 3] = int(yt[i, 0]) != int(yt[i, 1]) or int(xt[j, 0]) != int(xt[j, 1])
+            if flags[t, 0]:
+                covered[int(yt[i, 0]), int(xt[j, 0])] = True
+    # 1. held atoms that no full-depth tweezer covers at the start fall out
+    for r in range(ny):
+        for c in range(nx):
+            if held[r, c] and not covered[r, c]:
+                events[EV_LOST_DROPPED] += 1
+                if events[EV_FIRST_DROP] < 0:
+                    events[EV_FIRST_DROP] = r * nx + c
+                held[r, c] = False
+    # the tweezers take over the held atoms (read before any write)
+    for t in range(n):
+        r0 = int(yt[t // mx, 0])
+        c0 = int(xt[t % mx, 0])
+        flags[t, 2] = flags[t, 0] and held[r0, c0]
+        if flags[t, 2]:
+            tw_mark[t] = held_mark[r0, c0]
+            if track_ids:
+                tw_id[t] = held_id[r0, c0]
+    held[:, :] = False
+    # 2. transport: one step per loaded tweezer that moves
+    for t in range(n):
+        if flags[t, 2] and flags[t, 3]:
+            events[EV_STEPS] += 1
+            if tw_mark[t] == _MARK_CAPTURED:
+                events[EV_DRAGGED] += 1
+                tw_mark[t] = _MARK_DRAGGED
+            if track_ids:
+                atom_stats[tw_id[t], STAT_STEPS] += 1
+            if draw_step:
+                ok = u[pos] < p_step
+                pos += 1
+                if not ok:
+                    events[EV_LOST_STEP] += 1
+                    flags[t, 2] = False
+    # 3. end of the slot: collide, implant, keep holding, or take the atom below
+    for t in range(n):
+        r1 = int(yt[t // mx, 1])
+        c1 = int(xt[t % mx, 1])
+        on1 = flags[t, 1]
+        if flags[t, 2]:
+            if static[r1, c1] or held[r1, c1]:
+                events[EV_LOST_COLLISION] += 2
+                if events[EV_FIRST_COLLISION] < 0:
+                    events[EV_FIRST_COLLISION] = r1 * nx + c1
+                static[r1, c1] = False
+                held[r1, c1] = False
+            elif not on1:
+                events[EV_IMPLANTED] += 1
+                ok = True
+                if draw_transfer:
+                    ok = u[pos] < p_transfer
+                    pos += 1
+                if ok:
+                    static[r1, c1] = True
+                    if track_ids:
+                        static_id[r1, c1] = tw_id[t]
+                else:
+                    events[EV_LOST_TRANSFER] += 1
+            else:
+                held[r1, c1] = True
+                held_mark[r1, c1] = tw_mark[t]
+                if track_ids:
+                    held_id[r1, c1] = tw_id[t]
+        elif on1 and static[r1, c1]:
+            captured = flags[t, 0]
+            if captured:
+                events[EV_CAPTURED] += 1
+                if events[EV_FIRST_CAPTURE] < 0:
+                    events[EV_FIRST_CAPTURE] = r1 * nx + c1
+            else:
+                events[EV_PICKED] += 1
+            static[r1, c1] = False
+            if track_ids:
+                a = static_id[r1, c1]
+                static_id[r1, c1] = -1
+                atom_stats[a, STAT_PICKUPS] += 1
+                if captured:
+                    atom_stats[a, STAT_CAPTURES] += 1
+            ok = True
+            if draw_transfer:
+                ok = u[pos] < p_transfer
+                pos += 1
+            if ok:
+                held[r1, c1] = True
+                held_mark[r1, c1] = _MARK_CAPTURED if captured else _MARK_PICKED
+                if track_ids:
+                    held_id[r1, c1] = a
+            else:
+                events[EV_LOST_TRANSFER] += 1
+    return pos
+
+
+def tweezer_slot_reference(
+    yt: np.ndarray, xt: np.ndarray, full_fraction: float, state: MoveState, u: np.ndarray, pos: int,
+    p_transfer: float | None, p_step: float | None, events: np.ndarray,
+) -> int:
+    """``tweezer_slot`` in plain numpy (atom bookkeeping without identities); ``p_* = None``: no draws."""
+    static, held, mark = state.static, state.held, state.held_mark
+    ny, nx = static.shape
+    full = np.float32(full_fraction)
+    my, mx = yt.shape[0], xt.shape[0]
+    r0 = np.repeat(yt[:, 0].astype(np.int64), mx)
+    r1 = np.repeat(yt[:, 1].astype(np.int64), mx)
+    c0 = np.tile(xt[:, 0].astype(np.int64), my)
+    c1 = np.tile(xt[:, 1].astype(np.int64), my)
+    on0 = (np.multiply.outer(yt[:, 2], xt[:, 2]).astype(np.float32) >= full).ravel()
+    on1 = (np.multiply.outer(yt[:, 3], xt[:, 3]).astype(np.float32) >= full).ravel()
+    moved = (r0 != r1) | (c0 != c1)
+
+    covered = np.zeros_like(held)
+    covered[r0[on0], c0[on0]] = True
+    dropped = np.flatnonzero((held & ~covered).ravel())
+    events[EV_LOST_DROPPED] += dropped.size
+    if dropped.size and events[EV_FIRST_DROP] < 0:
+        events[EV_FIRST_DROP] = dropped[0]
+    loaded = on0 & held[r0, c0]
+    tw_mark = np.where(loaded, mark[r0, c0], 0).astype(np.int8)
+    held[:] = False
+
+    stepping = np.flatnonzero(loaded & moved)
+    events[EV_STEPS] += stepping.size
+    first_drag = stepping[tw_mark[stepping] == _MARK_CAPTURED]
+    events[EV_DRAGGED] += first_drag.size
+    tw_mark[first_drag] = _MARK_DRAGGED
+    if p_step is not None and stepping.size:
+        lost = stepping[u[pos : pos + stepping.size] >= p_step]
+        pos += stepping.size
+        events[EV_LOST_STEP] += lost.size
+        loaded[lost] = False
+
+    # the end-of-slot outcome of every tweezer (their end sites are distinct, so they do not interact)
+    end_static = static[r1, c1]
+    collide = loaded & end_static
+    implant = loaded & ~end_static & ~on1
+    keep = loaded & ~end_static & on1
+    take = ~loaded & on1 & end_static
+    hit = np.flatnonzero(collide)
+    events[EV_LOST_COLLISION] += 2 * hit.size
+    if hit.size and events[EV_FIRST_COLLISION] < 0:
+        events[EV_FIRST_COLLISION] = r1[hit[0]] * nx + c1[hit[0]]
+    static[r1[hit], c1[hit]] = False
+    captured = take & on0
+    events[EV_PICKED] += int(np.count_nonzero(take & ~on0))
+    events[EV_CAPTURED] += int(np.count_nonzero(captured))
+    first_capture = np.flatnonzero(captured)
+    if first_capture.size and events[EV_FIRST_CAPTURE] < 0:
+        events[EV_FIRST_CAPTURE] = r1[first_capture[0]] * nx + c1[first_capture[0]]
+    events[EV_IMPLANTED] += int(np.count_nonzero(implant))
+    drawn = np.flatnonzero(implant | take)  # transfer draws in tweezer order
+    ok = np.ones(implant.size, dtype=bool)
+    if p_transfer is not None and drawn.size:
+        ok[drawn] = u[pos : pos + drawn.size] < p_transfer
+        pos += drawn.size
+    events[EV_LOST_TRANSFER] += int(np.count_nonzero(~ok[drawn]))
+    static[r1[take], c1[take]] = False
+    put = implant & ok
+    static[r1[put], c1[put]] = True
+    hold = keep | (take & ok)
+    held[r1[hold], c1[hold]] = True
+    mark[r1[keep], c1[keep]] = tw_mark[keep]
+    got = take & ok
+    mark[r1[got], c1[got]] = np.where(on0[got], _MARK_CAPTURED, _MARK_PICKED)
+    return pos
+
+
+# --- a 1D AOD chain ----------------------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def chain_slot(
+    tracks: np.ndarray, full_fraction: float, atoms: np.ndarray, row_id: np.ndarray, atom_stats: np.ndarray,
+    track_ids: bool, scratch: np.ndarray, u: np.ndarray, pos: int, draw: bool, p_step: float, events: np.ndarray,
+) -> int:
+    """One slot of the chain (``atoms``: ``bool[nx]``, the chain's sites; ``row_id`` its identities). Returns ``pos``."""
+    nx = atoms.size
+    trap_of = scratch[0]  # track holding site k at the start (the last such track)
+    new = scratch[1]  # atoms arriving at each site
+    new_id = scratch[2]
+    trap_of[:] = -1
+    new[:] = 0
+    new_id[:] = -1
+    full = np.float32(full_fraction)
+    for t in range(tracks.shape[0]):
+        if tracks[t, 2] >= full:
+            trap_of[int(tracks[t, 0])] = t
+    for k in range(nx):
+        if not atoms[k]:
+            continue
+        t = trap_of[k]
+        if t < 0 or not tracks[t, 3] >= full:
+            events[EV_LOST_DROPPED if t < 0 else EV_LOST_RELEASED] += 1
+            if events[EV_FIRST_DROP] < 0:
+                events[EV_FIRST_DROP] = k
+            continue
+        dst = int(tracks[t, 1])
+        if dst != k:
+            events[EV_STEPS] += 1
+            if track_ids:
+                atom_stats[row_id[k], STAT_STEPS] += 1
+            if draw:
+                ok = u[pos] < p_step
+                pos += 1
+                if not ok:
+                    events[EV_LOST_STEP] += 1
+                    continue
+        new[dst] += 1
+        if track_ids:
+            new_id[dst] = row_id[k]
+    for k in range(nx):
+        if new[k] > 1:
+            events[EV_LOST_COLLISION] += new[k]
+            if events[EV_FIRST_COLLISION] < 0:
+                events[EV_FIRST_COLLISION] = k
+        atoms[k] = new[k] == 1
+        if track_ids:
+            row_id[k] = new_id[k] if new[k] == 1 else -1
+    return pos
+
+
+def chain_slot_reference(
+    tracks: np.ndarray, full_fraction: float, atoms: np.ndarray, u: np.ndarray, pos: int, p_step: float | None,
+    events: np.ndarray,
+) -> int:
+    """``chain_slot`` in plain numpy (no identities); ``p_step = None``: no draws."""
+    full = np.float32(full_fraction)
+    s0 = tracks[:, 0].astype(np.int64)
+    s1 = tracks[:, 1].astype(np.int64)
+    on0 = tracks[:, 2] >= full
+    on1 = tracks[:, 3] >= full
+    trap_of = np.full(atoms.size, -1, dtype=np.int64)
+    live = np.flatnonzero(on0)
+    trap_of[s0[live]] = live
+    src = np.flatnonzero(atoms)
+    t = trap_of[src]
+    lost = np.sort(np.concatenate([src[t < 0], src[t >= 0][~on1[t[t >= 0]]]]))
+    if lost.size and events[EV_FIRST_DROP] < 0:
+        events[EV_FIRST_DROP] = lost[0]
+    events[EV_LOST_DROPPED] += int(np.count_nonzero(t < 0))
+    src, t = src[t >= 0], t[t >= 0]
+    released = ~on1[t]
+    events[EV_LOST_RELEASED] += int(np.count_nonzero(released))
+    src, t = src[~released], t[~released]
+    dst = s1[t]
+    moved = dst != src
+    events[EV_STEPS] += int(moved.sum())
+    keep = np.ones(src.size, dtype=bool)
+    if p_step is not None and moved.any():
+        keep[moved] = u[pos : pos + int(moved.sum())] < p_step
+        pos += int(moved.sum())
+    events[EV_LOST_STEP] += int(np.count_nonzero(~keep))
+    new = np.bincount(dst[keep], minlength=atoms.size)
+    crowded = np.flatnonzero(new > 1)
+    events[EV_LOST_COLLISION] += int(new[crowded].sum())
+    if crowded.size and events[EV_FIRST_COLLISION] < 0:
+        events[EV_FIRST_COLLISION] = crowded[0]
+    atoms[:] = new == 1
+    return pos
+
+
+# --- planned operations as tracks --------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def operation_tracks(
+    kind: int, sites: np.ndarray, deltas: np.ndarray, n_sites: int, chain: bool, out: np.ndarray
+) -> int:
+    """The tone tracks one axis of a planned slot plays (what the waveform stage renders, as the simulated
+    AWG's decoder would report it); returns the number of rows written to ``out``.
+
+    Crossed AODs: ``EXTRACT`` ramps the listed tones up in place, ``SHIFT`` moves them at full amplitude,
+    ``IMPLANT`` ramps them down, ``IDLE`` plays nothing. Chain (``chain``): every site has a tone; the listed
+    ones move by their delta, a site a mover enters fades out and a site one leaves (and none enters) fades in.
+    """
+    m = 0
+    if not chain:
+        if kind == IDLE:
+            return 0
+        a0 = np.float32(0.0) if kind == EXTRACT else np.float32(1.0)
+        a1 = np.float32(0.0) if kind == IMPLANT else np.float32(1.0)
+        for k in range(sites.size):
+            s = sites[k]
+            if s < 0:
+                break
+            out[m, 0] = s
+            out[m, 1] = s + (deltas[k] if kind == SHIFT else 0)
+            out[m, 2] = a0
+            out[m, 3] = a1
+            m += 1
+        return m
+    if kind == IDLE:  # the hold waveform: every trap's tone, steady
+        for k in range(n_sites):
+            out[k, 0] = k
+            out[k, 1] = k
+            out[k, 2] = 1.0
+            out[k, 3] = 1.0
+        return n_sites
+    # per site: is it a listed tone (and where does it go), is it entered by a moving tone
+    listed = np.zeros(n_sites, dtype=np.bool_)
+    entered = np.zeros(n_sites, dtype=np.bool_)
+    dest = np.arange(n_sites)
+    for k in range(sites.size):
+        s = sites[k]
+        if s < 0:
+            break
+        listed[s] = True
+        dest[s] = s + deltas[k]
+        if deltas[k] != 0 and 0 <= dest[s] < n_sites:
+            entered[dest[s]] = True
+    for s in range(n_sites):
+        out[m, 0] = s
+        out[m, 1] = dest[s]
+        out[m, 2] = 1.0
+        out[m, 3] = 0.0 if entered[s] and not listed[s] else 1.0
+        m += 1
+        if listed[s] and dest[s] != s and not entered[s]:
+            # the site the tone leaves fades in a tone of its own (off at the start, so it holds nothing yet)
+            out[m, 0] = s
+            out[m, 1] = s
+            out[m, 2] = 0.0
+            out[m, 3] = 1.0
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
+def replay_operations(
+    kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
+    first: int, stop: int, chain: bool,
+    static: np.ndarray, held: np.ndarray, held_mark: np.ndarray, static_id: np.ndarray, held_id: np.ndarray,
+    atom_stats: np.ndarray, track_ids: bool, covered: np.ndarray, flags: np.ndarray, tw_id: np.ndarray,
+    tw_mark: np.ndarray, chain_scratch: np.ndarray, yt: np.ndarray, xt: np.ndarray, events: np.ndarray,
+    stop_on_fault: bool, stop_on_capture: bool,
+) -> int:  # fmt: skip
+    """Play planned slots ``first..stop-1`` through the move model, losses off.
+
+    Returns the index of the slot after which the first fault (collision, dropped or released atom) showed
+    when ``stop_on_fault`` (or the first capture, ``stop_on_capture``), else ``stop``. Captures are not
+    faults of the model: whether a plan accounts for them is the validator's question.
+    """
+    ny, nx = static.shape
+    u = np.zeros(1)
+    row_static = static[0]
+    row_id = static_id[0]
+    for i in range(first, stop):
+        k = int(kind[i])
+        if chain:
+            m = operation_tracks(k, x_site[i], x_delta[i], nx, True, xt)
+            chain_slot(xt[:m], 1.0, row_static, row_id, atom_stats, track_ids, chain_scratch, u, 0, False, 1.0, events)
+        else:
+            my = operation_tracks(k, y_site[i], y_delta[i], ny, False, yt)
+            mx = operation_tracks(k, x_site[i], x_delta[i], nx, False, xt)
+            tweezer_slot(yt[:my], xt[:mx], 0.5, static, held, held_mark, static_id, held_id, atom_stats, track_ids,
+                         covered, flags, tw_id, tw_mark, u, 0, False, 1.0, False, 1.0, events)  # fmt: skip
+        if stop_on_fault and (
+            events[EV_LOST_COLLISION] > 0 or events[EV_LOST_DROPPED] > 0 or events[EV_LOST_RELEASED] > 0
+        ):
+            return i
+        if stop_on_capture and events[EV_CAPTURED] > 0:
+            return i
+    return stop

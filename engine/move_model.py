@@ -97,7 +97,7 @@ class MoveState:
         self.static_id = np.full((ny, nx), -1, dtype=np.int64)
         self.held_id = np.full((ny, nx), -1, dtype=np.int64)
         self.atom_stats = np.zeros((n_atoms, 3), dtype=np.int64)
-        self.covered = np.zeros((ny, nx), dtype=np.bool_)
+        self.arrivals = np.zeros((ny, nx), dtype=np.int64)
         self.tweezer_flags = np.zeros((ny * nx, 4), dtype=np.bool_)
         self.tweezer_id = np.full(ny * nx, -1, dtype=np.int64)
         self.tweezer_mark = np.zeros(ny * nx, dtype=np.int8)
@@ -126,47 +126,48 @@ def tweezer_slot(
     yt: np.ndarray, xt: np.ndarray, full_fraction: float,
     static: np.ndarray, held: np.ndarray, held_mark: np.ndarray,
     static_id: np.ndarray, held_id: np.ndarray, atom_stats: np.ndarray, track_ids: bool,
-    covered: np.ndarray, flags: np.ndarray, tw_id: np.ndarray, tw_mark: np.ndarray,
+    arrivals: np.ndarray, flags: np.ndarray, tw_id: np.ndarray, tw_mark: np.ndarray,
     u: np.ndarray, pos: int, draw_transfer: bool, p_transfer: float, draw_step: bool, p_step: float,
     events: np.ndarray,
 ) -> int:  # fmt: skip
     """One slot of product-set tweezers (tweezer t = y track i x x track j, t = i * mx + j). Returns ``pos``.
 
-    ``flags[t]`` columns: full depth at start, at end, loaded, moved. Scratch: ``covered``, ``tw_id``,
-    ``tw_mark`` (at least ``my * mx`` rows).
+    ``flags[t]`` columns: full depth at start, at end, loaded, moved. Scratch: ``arrivals`` (int, per site),
+    ``tw_id``, ``tw_mark`` (at least ``my * mx`` rows). Tracks from a real slot never share a site; when
+    they do, the first tweezer (in ``t`` order) over a site takes what is there, and every atom that ends a
+    slot at a site together with another is lost in the collision.
     """
     ny, nx = static.shape
     my = yt.shape[0]
     mx = xt.shape[0]
     full = np.float32(full_fraction)
     n = my * mx
-    covered[:, :] = False
+    arrivals[:, :] = 0
     for i in range(my):
         for j in range(mx):
             t = i * mx + j
             flags[t, 0] = np.float32(yt[i, 2] * xt[j, 2]) >= full
             flags[t, 1] = np.float32(yt[i, 3] * xt[j, 3]) >= full
             flags[t, 3] = int(yt[i, 0]) != int(yt[i, 1]) or int(xt[j, 0]) != int(xt[j, 1])
+            flags[t, 2] = False
             if flags[t, 0]:
-                covered[int(yt[i, 0]), int(xt[j, 0])] = True
-    # 1. held atoms that no full-depth tweezer covers at the start fall out
+                r0 = int(yt[i, 0])
+                c0 = int(xt[j, 0])
+                # 1. the first full-depth tweezer over a held atom holds it from now on
+                if held[r0, c0]:
+                    held[r0, c0] = False
+                    flags[t, 2] = True
+                    tw_mark[t] = held_mark[r0, c0]
+                    if track_ids:
+                        tw_id[t] = held_id[r0, c0]
+    # held atoms that no full-depth tweezer covers at the start fall out
     for r in range(ny):
         for c in range(nx):
-            if held[r, c] and not covered[r, c]:
+            if held[r, c]:
                 events[EV_LOST_DROPPED] += 1
                 if events[EV_FIRST_DROP] < 0:
                     events[EV_FIRST_DROP] = r * nx + c
                 held[r, c] = False
-    # the tweezers take over the held atoms (read before any write)
-    for t in range(n):
-        r0 = int(yt[t // mx, 0])
-        c0 = int(xt[t % mx, 0])
-        flags[t, 2] = flags[t, 0] and held[r0, c0]
-        if flags[t, 2]:
-            tw_mark[t] = held_mark[r0, c0]
-            if track_ids:
-                tw_id[t] = held_id[r0, c0]
-    held[:, :] = False
     # 2. transport: one step per loaded tweezer that moves
     for t in range(n):
         if flags[t, 2] and flags[t, 3]:
@@ -182,19 +183,28 @@ def tweezer_slot(
                 if not ok:
                     events[EV_LOST_STEP] += 1
                     flags[t, 2] = False
-    # 3. end of the slot: collide, implant, keep holding, or take the atom below
+    # 3a. collisions: a site where a loaded tweezer ends with another atom (static or loaded) loses them all
+    for t in range(n):
+        if flags[t, 2]:
+            arrivals[int(yt[t // mx, 1]), int(xt[t % mx, 1])] += 1
+    for t in range(n):
+        r1 = int(yt[t // mx, 1])
+        c1 = int(xt[t % mx, 1])
+        if flags[t, 2] and arrivals[r1, c1] + static[r1, c1] >= 2:
+            events[EV_LOST_COLLISION] += 1
+            if events[EV_FIRST_COLLISION] < 0:
+                events[EV_FIRST_COLLISION] = r1 * nx + c1
+            flags[t, 2] = False
+            if static[r1, c1]:
+                events[EV_LOST_COLLISION] += 1
+                static[r1, c1] = False
+    # 3b. per tweezer: implant, keep holding, or take the atom below
     for t in range(n):
         r1 = int(yt[t // mx, 1])
         c1 = int(xt[t % mx, 1])
         on1 = flags[t, 1]
         if flags[t, 2]:
-            if static[r1, c1] or held[r1, c1]:
-                events[EV_LOST_COLLISION] += 2
-                if events[EV_FIRST_COLLISION] < 0:
-                    events[EV_FIRST_COLLISION] = r1 * nx + c1
-                static[r1, c1] = False
-                held[r1, c1] = False
-            elif not on1:
+            if not on1:
                 events[EV_IMPLANTED] += 1
                 ok = True
                 if draw_transfer:
@@ -211,7 +221,7 @@ def tweezer_slot(
                 held_mark[r1, c1] = tw_mark[t]
                 if track_ids:
                     held_id[r1, c1] = tw_id[t]
-        elif on1 and static[r1, c1]:
+        elif on1 and static[r1, c1] and arrivals[r1, c1] == 0:
             captured = flags[t, 0]
             if captured:
                 events[EV_CAPTURED] += 1
@@ -220,6 +230,7 @@ def tweezer_slot(
             else:
                 events[EV_PICKED] += 1
             static[r1, c1] = False
+            a = -1
             if track_ids:
                 a = static_id[r1, c1]
                 static_id[r1, c1] = -1
@@ -240,33 +251,45 @@ def tweezer_slot(
     return pos
 
 
+def _first_per_site(candidates: np.ndarray, sites: np.ndarray) -> np.ndarray:
+    """Of tweezer indices ``candidates`` (ascending), the first one at each distinct site, ascending."""
+    _, first = np.unique(sites[candidates], return_index=True)
+    return np.sort(candidates[first])
+
+
 def tweezer_slot_reference(
-    yt: np.ndarray, xt: np.ndarray, full_fraction: float, state: MoveState, u: np.ndarray, pos: int,
-    p_transfer: float | None, p_step: float | None, events: np.ndarray,
+    yt: np.ndarray, xt: np.ndarray, full_fraction: float, static: np.ndarray, held: np.ndarray,
+    mark: np.ndarray, u: np.ndarray, pos: int, p_transfer: float | None, p_step: float | None, events: np.ndarray,
 ) -> int:
     """``tweezer_slot`` in plain numpy (atom bookkeeping without identities); ``p_* = None``: no draws."""
-    static, held, mark = state.static, state.held, state.held_mark
-    ny, nx = static.shape
+    nx = static.shape[1]
     full = np.float32(full_fraction)
     my, mx = yt.shape[0], xt.shape[0]
     r0 = np.repeat(yt[:, 0].astype(np.int64), mx)
     r1 = np.repeat(yt[:, 1].astype(np.int64), mx)
     c0 = np.tile(xt[:, 0].astype(np.int64), my)
     c1 = np.tile(xt[:, 1].astype(np.int64), my)
+    start, end = r0 * nx + c0, r1 * nx + c1
     on0 = (np.multiply.outer(yt[:, 2], xt[:, 2]).astype(np.float32) >= full).ravel()
     on1 = (np.multiply.outer(yt[:, 3], xt[:, 3]).astype(np.float32) >= full).ravel()
     moved = (r0 != r1) | (c0 != c1)
+    static_flat, held_flat, mark_flat = static.reshape(-1), held.reshape(-1), mark.reshape(-1)
 
-    covered = np.zeros_like(held)
-    covered[r0[on0], c0[on0]] = True
-    dropped = np.flatnonzero((held & ~covered).ravel())
+    # 1. the first full-depth tweezer over each held atom takes it over; the rest of the held atoms fall out
+    loaded = np.zeros(start.size, dtype=bool)
+    holders = _first_per_site(np.flatnonzero(on0), start)
+    holders = holders[held_flat[start[holders]]]
+    loaded[holders] = True
+    tw_mark = np.zeros(start.size, dtype=np.int8)
+    tw_mark[holders] = mark_flat[start[holders]]
+    held_flat[start[holders]] = False
+    dropped = np.flatnonzero(held_flat)
     events[EV_LOST_DROPPED] += dropped.size
     if dropped.size and events[EV_FIRST_DROP] < 0:
         events[EV_FIRST_DROP] = dropped[0]
-    loaded = on0 & held[r0, c0]
-    tw_mark = np.where(loaded, mark[r0, c0], 0).astype(np.int8)
     held[:] = False
 
+    # 2. transport
     stepping = np.flatnonzero(loaded & moved)
     events[EV_STEPS] += stepping.size
     first_drag = stepping[tw_mark[stepping] == _MARK_CAPTURED]
@@ -278,38 +301,41 @@ def tweezer_slot_reference(
         events[EV_LOST_STEP] += lost.size
         loaded[lost] = False
 
-    # the end-of-slot outcome of every tweezer (their end sites are distinct, so they do not interact)
-    end_static = static[r1, c1]
-    collide = loaded & end_static
-    implant = loaded & ~end_static & ~on1
-    keep = loaded & ~end_static & on1
-    take = ~loaded & on1 & end_static
+    # 3a. collisions: every atom at a site where a loaded tweezer ends together with another atom
+    arrivals = np.bincount(end[loaded], minlength=static_flat.size)
+    crowded = arrivals + static_flat >= 2
+    collide = loaded & crowded[end]
     hit = np.flatnonzero(collide)
-    events[EV_LOST_COLLISION] += 2 * hit.size
+    events[EV_LOST_COLLISION] += hit.size + int(np.count_nonzero(static_flat & crowded))
     if hit.size and events[EV_FIRST_COLLISION] < 0:
-        events[EV_FIRST_COLLISION] = r1[hit[0]] * nx + c1[hit[0]]
-    static[r1[hit], c1[hit]] = False
+        events[EV_FIRST_COLLISION] = end[hit[0]]
+    static_flat[crowded] = False
+    loaded &= ~collide
+
+    # 3b. implant, keep holding, or take the atom below (the first full-depth tweezer over it)
+    implant = loaded & ~on1
+    keep = loaded & on1
+    take = np.zeros(start.size, dtype=bool)
+    take[_first_per_site(np.flatnonzero(~loaded & on1 & static_flat[end] & (arrivals[end] == 0)), end)] = True
     captured = take & on0
     events[EV_PICKED] += int(np.count_nonzero(take & ~on0))
     events[EV_CAPTURED] += int(np.count_nonzero(captured))
     first_capture = np.flatnonzero(captured)
     if first_capture.size and events[EV_FIRST_CAPTURE] < 0:
-        events[EV_FIRST_CAPTURE] = r1[first_capture[0]] * nx + c1[first_capture[0]]
+        events[EV_FIRST_CAPTURE] = end[first_capture[0]]
     events[EV_IMPLANTED] += int(np.count_nonzero(implant))
     drawn = np.flatnonzero(implant | take)  # transfer draws in tweezer order
-    ok = np.ones(implant.size, dtype=bool)
+    ok = np.ones(start.size, dtype=bool)
     if p_transfer is not None and drawn.size:
         ok[drawn] = u[pos : pos + drawn.size] < p_transfer
         pos += drawn.size
     events[EV_LOST_TRANSFER] += int(np.count_nonzero(~ok[drawn]))
-    static[r1[take], c1[take]] = False
-    put = implant & ok
-    static[r1[put], c1[put]] = True
-    hold = keep | (take & ok)
-    held[r1[hold], c1[hold]] = True
-    mark[r1[keep], c1[keep]] = tw_mark[keep]
+    static_flat[end[take]] = False
+    static_flat[end[implant & ok]] = True
     got = take & ok
-    mark[r1[got], c1[got]] = np.where(on0[got], _MARK_CAPTURED, _MARK_PICKED)
+    held_flat[end[keep | got]] = True
+    mark_flat[end[keep]] = tw_mark[keep]
+    mark_flat[end[got]] = np.where(on0[got], _MARK_CAPTURED, _MARK_PICKED)
     return pos
 
 
@@ -477,7 +503,7 @@ def replay_operations(
     kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
     first: int, stop: int, chain: bool,
     static: np.ndarray, held: np.ndarray, held_mark: np.ndarray, static_id: np.ndarray, held_id: np.ndarray,
-    atom_stats: np.ndarray, track_ids: bool, covered: np.ndarray, flags: np.ndarray, tw_id: np.ndarray,
+    atom_stats: np.ndarray, track_ids: bool, arrivals: np.ndarray, flags: np.ndarray, tw_id: np.ndarray,
     tw_mark: np.ndarray, chain_scratch: np.ndarray, yt: np.ndarray, xt: np.ndarray, events: np.ndarray,
     stop_on_fault: bool, stop_on_capture: bool,
 ) -> int:  # fmt: skip
@@ -500,7 +526,7 @@ def replay_operations(
             my = operation_tracks(k, y_site[i], y_delta[i], ny, False, yt)
             mx = operation_tracks(k, x_site[i], x_delta[i], nx, False, xt)
             tweezer_slot(yt[:my], xt[:mx], 0.5, static, held, held_mark, static_id, held_id, atom_stats, track_ids,
-                         covered, flags, tw_id, tw_mark, u, 0, False, 1.0, False, 1.0, events)  # fmt: skip
+                         arrivals, flags, tw_id, tw_mark, u, 0, False, 1.0, False, 1.0, events)  # fmt: skip
         if stop_on_fault and (
             events[EV_LOST_COLLISION] > 0 or events[EV_LOST_DROPPED] > 0 or events[EV_LOST_RELEASED] > 0
         ):

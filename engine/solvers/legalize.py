@@ -50,7 +50,7 @@ class PlanLegalizer:
         mm.replay_operations(
             ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, first, stop, False,
             st.static, st.held, st.held_mark, st.static_id, st.held_id, st.atom_stats, False,
-            st.covered, st.tweezer_flags, st.tweezer_id, st.tweezer_mark, st.chain_scratch,
+            st.arrivals, st.tweezer_flags, st.tweezer_id, st.tweezer_mark, st.chain_scratch,
             st.y_tracks, st.x_tracks, ev, False, False,
         )  # fmt: skip
         return bool(

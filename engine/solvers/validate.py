@@ -168,7 +168,7 @@ def _play(ops: Operations, state: mm.MoveState, chain: bool, *, stop_on_capture:
     at = mm.replay_operations(
         ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, 0, n, chain,
         state.static, state.held, state.held_mark, state.static_id, state.held_id, state.atom_stats, True,
-        state.covered, state.tweezer_flags, state.tweezer_id, state.tweezer_mark, state.chain_scratch,
+        state.arrivals, state.tweezer_flags, state.tweezer_id, state.tweezer_mark, state.chain_scratch,
         state.y_tracks, state.x_tracks, events, True, stop_on_capture,
     )  # fmt: skip
     return at, events

@@ -37,6 +37,7 @@ class PlanLegalizer:
         self._state = mm.MoveState(ny, nx)
         self._events = mm.new_events()
         self.operations = Operations(nx=nx, ny=ny, capacity=64)
+        self._trial = Operations(nx=nx, ny=ny, capacity=64)  # a candidate batch, checked before it is kept
         self.batches_split = 0
 
     def _play(self, ops: Operations, first: int, stop: int, static: np.ndarray) -> bool:
@@ -97,22 +98,48 @@ class PlanLegalizer:
 
     def _split(self, batch: _Batch, static: np.ndarray, steps: list[tuple[int, int]]) -> None:
         loaded = static[np.ix_(batch.y[0], batch.x[0])]
-        units = _groups(loaded)
-        pending = [u for u in units]
+        pending = _groups(loaded)
         while pending:
             k = _next_unit(batch, pending, static)
             if k < 0:  # the groups block each other: go atom by atom
-                atoms = [(np.array([r]), np.array([c])) for rows, cols in pending for r in rows for c in cols]
-                pending = atoms
+                pending = [(np.array([r]), np.array([c])) for rows, cols in pending for r in rows for c in cols]
                 k = _next_unit(batch, pending, static)
                 if k < 0:
                     k = 0  # no order works; the validator will name the collision
             rows, cols = pending.pop(k)
-            self._emit(batch, rows, cols)
+            rows, cols = self._grow(batch, rows, cols, pending, static)
+            self._emit(self.operations, batch, rows, cols)
             _batch_steps(batch, rows, cols, static, self.nx, steps)
 
-    def _emit(self, batch: _Batch, rows: np.ndarray, cols: np.ndarray) -> None:
-        out = self.operations
+    def _grow(
+        self, batch: _Batch, rows: np.ndarray, cols: np.ndarray, pending: list[tuple[np.ndarray, np.ndarray]],
+        static: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Add waiting groups to the batch about to run while the model finds the union legal: it picks up
+        no atom but theirs, none of its tweezers (the new empty intersections included) captures or meets an
+        atom, and its destinations lie on no other waiting group's path."""
+        trial = self._trial
+        j = 0
+        while j < len(pending):
+            r2 = np.union1d(rows, pending[j][0])
+            c2 = np.union1d(cols, pending[j][1])
+            n_atoms = int(static[np.ix_(batch.y[0][rows], batch.x[0][cols])].sum())
+            n_atoms += int(static[np.ix_(batch.y[0][pending[j][0]], batch.x[0][pending[j][1]])].sum())
+            others = [p for q, p in enumerate(pending) if q != j]
+            if int(static[np.ix_(batch.y[0][r2], batch.x[0][c2])].sum()) == n_atoms and not _blocks(
+                batch, pending[j], others, self.nx
+            ):
+                trial.clear()
+                self._emit(trial, batch, r2, c2)
+                if self._play(trial, 0, len(trial), static):
+                    rows, cols = r2, c2
+                    pending.pop(j)
+                    continue
+            j += 1
+        return rows, cols
+
+    @staticmethod
+    def _emit(out: Operations, batch: _Batch, rows: np.ndarray, cols: np.ndarray) -> None:
         out.append(EXTRACT, batch.y[0][rows], batch.x[0][cols])
         for s in range(batch.n_shifts):
             dy, dx = batch.dy[s][rows], batch.dx[s][cols]
@@ -182,11 +209,18 @@ def _next_unit(batch: _Batch, pending: list[tuple[np.ndarray, np.ndarray]], stat
         if not hits:
             clear.append(k)
     for k in clear:
-        dest = paths[k][-1] if paths[k].shape[0] else starts[k]
-        blocks = any(np.isin(dest, paths[q]).any() for q in range(len(pending)) if q != k)
-        if not blocks:
+        if not _blocks(batch, pending[k], [p for q, p in enumerate(pending) if q != k], nx):
             return k
     return clear[0] if clear else -1
+
+
+def _blocks(
+    batch: _Batch, unit: tuple[np.ndarray, np.ndarray], others: list[tuple[np.ndarray, np.ndarray]], nx: int
+) -> bool:
+    """Whether ``unit``'s destinations lie on the path of one of the ``others`` (which would then meet its atoms)."""
+    rows, cols = unit
+    dest = (batch.y[-1][rows][:, None] * nx + batch.x[-1][cols][None, :]).ravel()
+    return any(np.isin(dest, _path_sites(batch, r, c, nx)).any() for r, c in others)
 
 
 def _batch_steps(

@@ -37,7 +37,6 @@ class PlanLegalizer:
         self._state = mm.MoveState(ny, nx)
         self._events = mm.new_events()
         self.operations = Operations(nx=nx, ny=ny, capacity=64)
-        self._trial = Operations(nx=nx, ny=ny, capacity=64)  # a candidate batch, checked before it is kept
         self.batches_split = 0
 
     def _play(self, ops: Operations, first: int, stop: int, static: np.ndarray) -> bool:
@@ -69,72 +68,81 @@ class PlanLegalizer:
             return plan
         out = self.operations
         out.clear()
+        out.reserve(n)
         static = occupancy.copy()
-        steps: list[tuple[int, int]] = []
+        steps: list[np.ndarray] = []
+        cursor = 0  # into plan.steps, which lists each batch's steps in execution order
         split = 0
         i = 0
         while i < n:
             if int(ops.kind[i]) != EXTRACT:
-                out.append(int(ops.kind[i]), *_tones(ops, i))
+                _copy_slots(out, ops, i, i + 1)
                 i += 1
                 continue
             end = i
             while int(ops.kind[end]) != IMPLANT:
                 end += 1
             if self._play(ops, i, end + 1, static):
-                for k in range(i, end + 1):
-                    out.append(int(ops.kind[k]), *_tones(ops, k))
-                _batch_steps(_Batch(ops, i, end), np.arange(len(ops.tones(i)[0])), np.arange(len(ops.tones(i)[2])),
-                             static, self.nx, steps)  # fmt: skip
+                _copy_slots(out, ops, i, end + 1)
+                n_steps = int(self._events[mm.EV_STEPS])
+                steps.append(plan.steps[cursor : cursor + n_steps])
+                static[:] = self._state.static
             else:
                 split += 1
-                self._split(_Batch(ops, i, end), static, steps)
+                batch = _Batch(ops, i, end)
+                n_steps = batch.planned_steps(static)
+                self._split(batch, static, steps)
+            cursor += n_steps
             i = end + 1
         self.batches_split = split
         notes = dict(plan.notes)
         notes["batches_split"] = float(split)
-        return Plan(steps=np.array(steps, dtype=np.int32).reshape(-1, 2), operations=out, algorithm=plan.algorithm,
-                    notes=notes)  # fmt: skip
+        all_steps = np.concatenate(steps).astype(np.int32) if steps else np.zeros((0, 2), dtype=np.int32)
+        return Plan(steps=all_steps.reshape(-1, 2), operations=out, algorithm=plan.algorithm, notes=notes)
 
-    def _split(self, batch: _Batch, static: np.ndarray, steps: list[tuple[int, int]]) -> None:
-        loaded = static[np.ix_(batch.y[0], batch.x[0])]
-        pending = _groups(loaded)
+    def _split(self, batch: _Batch, static: np.ndarray, steps: list[np.ndarray]) -> None:
+        flat = static.reshape(-1)
+        pending = [_Unit(batch, rows, cols, self.nx) for rows, cols in _groups(flat[batch.sites(0, *_all(batch))])]
+        on_path = np.zeros(flat.size, dtype=np.int64)  # how many waiting units pass over each site
+        for unit in pending:
+            on_path[unit.path] += 1
         while pending:
-            k = _next_unit(batch, pending, static)
+            k = _next_unit(pending, flat, on_path)
             if k < 0:  # the groups block each other: go atom by atom
-                pending = [(np.array([r]), np.array([c])) for rows, cols in pending for r in rows for c in cols]
-                k = _next_unit(batch, pending, static)
+                atoms = [_Unit(batch, r[None], c[None], self.nx) for u in pending for r in u.rows for c in u.cols]
+                pending = [a for a in atoms if flat[a.starts[0]]]
+                on_path[:] = 0
+                for unit in pending:
+                    on_path[unit.path] += 1
+                k = _next_unit(pending, flat, on_path)
                 if k < 0:
                     k = 0  # no order works; the validator will name the collision
-            rows, cols = pending.pop(k)
-            rows, cols = self._grow(batch, rows, cols, pending, static)
+            unit = pending.pop(k)
+            on_path[unit.path] -= 1
+            rows, cols = self._grow(batch, unit, pending, flat, on_path)
             self._emit(self.operations, batch, rows, cols)
             _batch_steps(batch, rows, cols, static, self.nx, steps)
 
     def _grow(
-        self, batch: _Batch, rows: np.ndarray, cols: np.ndarray, pending: list[tuple[np.ndarray, np.ndarray]],
-        static: np.ndarray,
+        self, batch: _Batch, unit: _Unit, pending: list[_Unit], flat: np.ndarray, on_path: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Add waiting groups to the batch about to run while the model finds the union legal: it picks up
-        no atom but theirs, none of its tweezers (the new empty intersections included) captures or meets an
-        atom, and its destinations lie on no other waiting group's path."""
-        trial = self._trial
+        """Add waiting units to the batch about to run while the union stays legal: it picks up no atom but
+        theirs, none of its tweezers (the new empty intersections included) arrives over an atom, and the
+        added unit's destinations lie on no other waiting unit's path."""
+        rows, cols = unit.rows, unit.cols
+        n_atoms = int(flat[unit.starts].sum())
         j = 0
         while j < len(pending):
-            r2 = np.union1d(rows, pending[j][0])
-            c2 = np.union1d(cols, pending[j][1])
-            n_atoms = int(static[np.ix_(batch.y[0][rows], batch.x[0][cols])].sum())
-            n_atoms += int(static[np.ix_(batch.y[0][pending[j][0]], batch.x[0][pending[j][1]])].sum())
-            others = [p for q, p in enumerate(pending) if q != j]
-            if int(static[np.ix_(batch.y[0][r2], batch.x[0][c2])].sum()) == n_atoms and not _blocks(
-                batch, pending[j], others, self.nx
-            ):
-                trial.clear()
-                self._emit(trial, batch, r2, c2)
-                if self._play(trial, 0, len(trial), static):
-                    rows, cols = r2, c2
-                    pending.pop(j)
-                    continue
+            other = pending[j]
+            r2 = np.union1d(rows, other.rows)
+            c2 = np.union1d(cols, other.cols)
+            starts = batch.sites(0, r2, c2).ravel()
+            n2 = n_atoms + int(flat[other.starts].sum())
+            if int(flat[starts].sum()) == n2 and not other.blocks(on_path, waiting=True) and _path_clear(batch, r2, c2, starts, flat):
+                rows, cols, n_atoms = r2, c2, n2
+                on_path[other.path] -= 1
+                pending.pop(j)
+                continue
             j += 1
         return rows, cols
 
@@ -164,11 +172,58 @@ class _Batch:
             self.y.append(self.y[-1] + self.dy[-1])
             self.x.append(self.x[-1] + self.dx[-1])
         self.n_shifts = len(self.dy)
+        self.nx = ops.nx
+
+    def planned_steps(self, static: np.ndarray) -> int:
+        """One-site steps the batch means to make from ``static``: its loaded tweezers' moves."""
+        loaded = static.reshape(-1)[self.sites(0, *_all(self))]
+        return sum(int((loaded & ((dy[:, None] != 0) | (dx[None, :] != 0))).sum()) for dy, dx in zip(self.dy, self.dx))
+
+    def sites(self, t: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Flat trap index under tweezer (row tone, col tone) after ``t`` shifts, ``[len(rows), len(cols)]``."""
+        return self.y[t][rows][:, None] * self.nx + self.x[t][cols][None, :]
 
 
-def _tones(ops: Operations, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    ys, dys, xs, dxs = ops.tones(i)
-    return ys, xs, dys, dxs
+def _all(batch: _Batch) -> tuple[np.ndarray, np.ndarray]:
+    return np.arange(batch.y[0].size), np.arange(batch.x[0].size)
+
+
+class _Unit:
+    """A product set of the batch's row and column tones that runs as a batch of its own: its start sites,
+    the sites its tweezers are over after each shift (``path``, unique) and its destinations."""
+
+    def __init__(self, batch: _Batch, rows: np.ndarray, cols: np.ndarray, nx: int) -> None:
+        self.rows = rows
+        self.cols = cols
+        self.starts = batch.sites(0, rows, cols).ravel()
+        self.path = np.unique(np.concatenate([batch.sites(t, rows, cols).ravel() for t in range(1, batch.n_shifts + 1)]
+                                             or [np.zeros(0, dtype=np.int64)]))  # fmt: skip
+        self.dest = batch.sites(batch.n_shifts, rows, cols).ravel()
+
+    def blocks(self, on_path: np.ndarray, *, waiting: bool) -> bool:
+        """Whether another waiting unit passes over one of this unit's destinations (``on_path`` counts this
+        unit's own path too while it is ``waiting``; its destinations are on it when it moves)."""
+        own = 1 if waiting and self.path.size else 0
+        return bool(np.any(on_path[self.dest] > own))
+
+
+def _path_clear(batch: _Batch, rows: np.ndarray, cols: np.ndarray, starts: np.ndarray, flat: np.ndarray) -> bool:
+    """The move model's rule for one batch at full depth: after every shift, no tweezer of the product set
+    (loaded or empty) is over an atom other than the ones it lifted (an empty one would capture it, a loaded
+    one collide). The legalized plan is replayed by the model itself; this is the planner's cheap form."""
+    free = flat.copy()
+    free[starts] = False
+    return not any(free[batch.sites(t, rows, cols)].any() for t in range(1, batch.n_shifts + 1))
+
+
+def _copy_slots(out: Operations, ops: Operations, first: int, stop: int) -> None:
+    """Append slots ``first..stop-1`` of ``ops`` to ``out`` unchanged."""
+    k = stop - first
+    if out.n + k > out.capacity:
+        out.reserve(max(2 * out.capacity, out.n + k))
+    for name in ("kind", "y_site", "y_delta", "x_site", "x_delta"):
+        getattr(out, name)[out.n : out.n + k] = getattr(ops, name)[first:stop]
+    out.n += k
 
 
 def _groups(loaded: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -187,44 +242,23 @@ def _groups(loaded: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(np.flatnonzero(loaded[:, cs[0]]), np.array(cs)) for cs in by_cols.values()]
 
 
-def _path_sites(batch: _Batch, rows: np.ndarray, cols: np.ndarray, nx: int) -> np.ndarray:
-    """Flat sites the unit's tweezers are over after each shift (t >= 1), one row per time."""
-    out = np.empty((batch.n_shifts, rows.size * cols.size), dtype=np.int64)
-    for t in range(1, batch.n_shifts + 1):
-        out[t - 1] = (batch.y[t][rows][:, None] * nx + batch.x[t][cols][None, :]).ravel()
-    return out
-
-
-def _next_unit(batch: _Batch, pending: list[tuple[np.ndarray, np.ndarray]], static: np.ndarray) -> int:
-    """Index of a unit that can run now: its loaded tweezers meet no atom, and (if any unit allows it) its
+def _next_unit(pending: list[_Unit], flat: np.ndarray, on_path: np.ndarray) -> int:
+    """Index of a unit that can run now: its tweezers meet no atom, and (if any unit allows it) its
     destinations lie on no other waiting unit's path. -1 if none can run now."""
-    nx = static.shape[1]
-    flat = static.ravel()
-    paths = [_path_sites(batch, rows, cols, nx) for rows, cols in pending]
-    starts = [(batch.y[0][rows][:, None] * nx + batch.x[0][cols][None, :]).ravel() for rows, cols in pending]
     clear = []
-    for k, path in enumerate(paths):
-        own = set(starts[k].tolist())
-        hits = [s for s in path.ravel().tolist() if flat[s] and s not in own]
-        if not hits:
+    for k, unit in enumerate(pending):
+        free = flat.copy()
+        free[unit.starts] = False
+        if not free[unit.path].any():
             clear.append(k)
     for k in clear:
-        if not _blocks(batch, pending[k], [p for q, p in enumerate(pending) if q != k], nx):
+        if not pending[k].blocks(on_path, waiting=True):
             return k
     return clear[0] if clear else -1
 
 
-def _blocks(
-    batch: _Batch, unit: tuple[np.ndarray, np.ndarray], others: list[tuple[np.ndarray, np.ndarray]], nx: int
-) -> bool:
-    """Whether ``unit``'s destinations lie on the path of one of the ``others`` (which would then meet its atoms)."""
-    rows, cols = unit
-    dest = (batch.y[-1][rows][:, None] * nx + batch.x[-1][cols][None, :]).ravel()
-    return any(np.isin(dest, _path_sites(batch, r, c, nx)).any() for r, c in others)
-
-
 def _batch_steps(
-    batch: _Batch, rows: np.ndarray, cols: np.ndarray, static: np.ndarray, nx: int, steps: list[tuple[int, int]]
+    batch: _Batch, rows: np.ndarray, cols: np.ndarray, static: np.ndarray, nx: int, out: list[np.ndarray]
 ) -> None:
     """Append the unit's one-site steps, slot by slot (within a slot, an atom moves once the site ahead is
     free, as ``replay_steps`` checks), and move its atoms in ``static``."""
@@ -232,6 +266,7 @@ def _batch_steps(
     c0 = batch.x[0][cols][None, :]
     loaded = static[r0, c0]
     where = static.copy()  # every atom, static or held, for the order of the steps
+    steps: list[tuple[int, int]] = []
     for t in range(batch.n_shifts):
         src = (batch.y[t][rows][:, None] * nx + batch.x[t][cols][None, :])[loaded]
         dst = (batch.y[t + 1][rows][:, None] * nx + batch.x[t + 1][cols][None, :])[loaded]
@@ -252,6 +287,7 @@ def _batch_steps(
             pending = waiting
     start = (r0 * nx + c0)[loaded]
     final = (batch.y[-1][rows][:, None] * nx + batch.x[-1][cols][None, :])[loaded]
-    flat = static.ravel()
+    flat = static.reshape(-1)
     flat[start] = False
     flat[final] = True
+    out.append(np.array(steps, dtype=np.int32).reshape(-1, 2))

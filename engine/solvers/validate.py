@@ -289,10 +289,6 @@ def validate(plan: Plan, occupancy: np.ndarray, target: np.ndarray, *, trap_sour
     report = replay(plan.operations, occupancy, trap_source=trap_source)
     nx = occupancy.shape[1]
     after_steps, plan_atom_steps, plan_atom_site = _replay_steps_ident(plan.steps, occupancy)
-    if not np.array_equal(after_steps, report.occupancy):
-        raise InvalidPlan("the plan's one-site steps and its waveform slots leave the atoms in different traps")
-    if report.steps != plan.n_steps:
-        raise InvalidPlan(f"the slots displace atoms {report.steps} times but the plan lists {plan.n_steps} steps")
     start = np.flatnonzero(np.asarray(occupancy).ravel())
     unaccounted = np.flatnonzero((report.atom_captures > 0) & (plan_atom_steps == 0))
     if unaccounted.size:
@@ -305,6 +301,10 @@ def validate(plan: Plan, occupancy: np.ndarray, target: np.ndarray, *, trap_sour
             f"and captures it; {unaccounted.size} atom(s) are disturbed that the plan's steps do not move "
             f"(first from {_site(int(start[unaccounted[0]]), nx)})",
         )  # fmt: skip
+    if not np.array_equal(after_steps, report.occupancy):
+        raise InvalidPlan("the plan's one-site steps and its waveform slots leave the atoms in different traps")
+    if report.steps != plan.n_steps:
+        raise InvalidPlan(f"the slots displace atoms {report.steps} times but the plan lists {plan.n_steps} steps")
     differ = np.flatnonzero((plan_atom_steps != report.atom_steps) | (plan_atom_site != report.atom_site))
     if differ.size:
         a = int(differ[0])

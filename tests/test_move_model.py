@@ -3,7 +3,7 @@
 Crossed AODs make a tweezer at every intersection of their tones. The issue's minimal case: ``EXTRACT
 y=[0,4] x=[0,5]`` leaves an empty tweezer at (0,5); an x shift brings it onto the atom at (0,4); a y shift
 moves it on at full depth. The validator must reject that plan, and the simulated lab, playing the plan's
-real waveforms, must drag the atom. Every planner's plans, made legal, capture nothing.
+real waveforms, must drag the atom. Every planner's plans capture nothing.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from drivers.sim.world import World
 from engine.devices import StepInfo
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations, Plan
 from engine.solvers import Solver
-from engine.solvers.legalize import PlanLegalizer
 from engine.solvers.validate import InvalidPlan, replay, validate
 from engine.targets import centre_target, rectangle_target
 from engine.waveforms import WaveformBank
@@ -112,19 +111,6 @@ def test_world_rules_on_decoded_samples_match_the_reference(lossless: bool) -> N
         w.set_occupancy(occ)
         w.apply_segment(_decoded(plan.operations))
         assert w.counters.captured == 1 and w.counters.dragged == 1 and w.occupancy()[1, 4]
-
-
-def test_legalizer_splits_the_minimal_batch_and_keeps_legal_plans() -> None:
-    plan, occ = minimal_drag_plan()
-    legal = PlanLegalizer(NY, NX).legalize(plan, occ)
-    report = validate(legal, occ, np.zeros_like(occ), trap_source="slm")
-    intended = np.zeros_like(occ)
-    for r, c in [(1, 0), (5, 0), (5, 4), (0, 4)]:
-        intended[r, c] = True
-    assert np.array_equal(report.occupancy, intended) and report.captures == 0
-    assert report.batches == 2 and legal.notes["batches_split"] == 1
-    # a plan that is already legal comes back as it is
-    assert PlanLegalizer(NY, NX).legalize(legal, occ) is legal
 
 
 def _band_or_rectangle(ny: int, nx: int, n_atoms: int, algorithm: str, seed: int) -> np.ndarray:

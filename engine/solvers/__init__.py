@@ -121,24 +121,9 @@ class Solver:
         self.trap_source = trap_source
         self.objective = objective
         # the two hot-path stages are the planner's own bound methods: a forwarding method would add a
-        # Python frame (~0.1 us) to each, against a ~5 us chain plan. Crossed-AOD plans go through the
-        # legalizer (empty tweezers at the product set's empty intersections must not capture atoms).
+        # Python frame (~0.1 us) to each, against a ~5 us chain plan
         self.solve_moves: Callable[[np.ndarray, np.ndarray], int] = self.planner.solve_moves
         self.batch: Callable[[], Plan] = self.planner.batch
-        if trap_source == "slm":
-            from engine.solvers.legalize import PlanLegalizer
-
-            self._legalizer = PlanLegalizer(ny, nx)
-            self._occupancy = np.zeros((ny, nx), dtype=bool)
-            self.solve_moves = self._solve_moves_slm
-            self.batch = self._batch_slm
-
-    def _solve_moves_slm(self, occupancy: np.ndarray, target: np.ndarray) -> int:
-        self._occupancy = occupancy
-        return self.planner.solve_moves(occupancy, target)
-
-    def _batch_slm(self) -> Plan:
-        return self._legalizer.legalize(self.planner.batch(), self._occupancy)
 
     def check_target(self, target: np.ndarray) -> None:
         try:

@@ -54,6 +54,29 @@ def test_validator_rejects_the_minimal_drag() -> None:
         validate(plan, occ, np.zeros_like(occ), trap_source="slm")
 
 
+def test_a_plan_whose_moves_account_for_the_drag_is_accepted() -> None:
+    plan, occ = minimal_drag_plan()
+    steps = plan.steps.tolist()
+    steps.insert(2, [_flat(0, 4), _flat(1, 4)])  # the plan says: the atom at (0,4) moves down with the batch
+    accounted = Plan(steps=np.array(steps, dtype=np.int32), operations=plan.operations)
+    report = validate(accounted, occ, np.zeros_like(occ), trap_source="slm")
+    assert report.captures == 1 and report.occupancy[1, 4]
+
+
+def test_a_capture_released_in_place_is_still_a_disturbance() -> None:
+    """An empty tweezer arrives over an atom and ramps down there: the atom ends where it was, but it was
+    taken and put back (two transfers) by a plan whose moves do not touch it."""
+    occ = np.zeros((NY, NX), dtype=bool)
+    occ[0, 0] = occ[0, 2] = True
+    ops = Operations(nx=NX, ny=NY)
+    ops.append(EXTRACT, [0], [0, 1])
+    ops.append(SHIFT, [0], [0, 1], [0], [1, 1])
+    ops.append(IMPLANT, [0], [1, 2])
+    plan = Plan(steps=np.array([[_flat(0, 0), _flat(0, 1)]], dtype=np.int32), operations=ops)
+    with pytest.raises(InvalidPlan, match="captures it"):
+        validate(plan, occ, np.zeros_like(occ), trap_source="slm")
+
+
 def test_the_simulated_lab_drags_the_atom_from_the_real_waveforms() -> None:
     plan, occ = minimal_drag_plan()
     samples = WaveformBank(CFG).render_slots(plan.operations)

@@ -11,10 +11,12 @@ fraction, end amplitude fraction)`` (float32, the format ``drivers/sim/decode.py
 y track i x x track j, at every intersection, loaded or not; a tweezer is at full depth where
 ``amp_y * amp_x >= full_fraction``. Per slot:
 
-1. a held atom whose site no full-depth tweezer covers at the start is **dropped** (lost);
+1. the first full-depth tweezer over a held atom at the start holds it on; a held atom that no full-depth
+   tweezer covers is **dropped** (lost);
 2. a loaded tweezer that moves carries its atom one **step** (may lose it);
 3. at the end of the slot, per tweezer:
-   - loaded, over an occupied static trap: **collision** (light-assisted; both atoms lost);
+   - loaded, at a site with another atom (in a static trap or another tweezer): **collision**
+     (light-assisted; every atom there is lost);
    - loaded, ramping down: **implant** into the trap below (a transfer, may lose it);
    - loaded, still on: keeps holding the atom;
    - empty, at full depth over an occupied static trap: takes the atom (a transfer, may lose it). If the
@@ -347,7 +349,8 @@ def chain_slot(
     tracks: np.ndarray, full_fraction: float, atoms: np.ndarray, row_id: np.ndarray, atom_stats: np.ndarray,
     track_ids: bool, scratch: np.ndarray, u: np.ndarray, pos: int, draw: bool, p_step: float, events: np.ndarray,
 ) -> int:
-    """One slot of the chain (``atoms``: ``bool[nx]``, the chain's sites; ``row_id`` its identities). Returns ``pos``."""
+    """One slot of the chain (``atoms``: ``bool[nx]``, the chain's sites; ``row_id``: their identities).
+    Returns ``pos``."""
     nx = atoms.size
     trap_of = scratch[0]  # track holding site k at the start (the last such track)
     new = scratch[1]  # atoms arriving at each site

@@ -41,7 +41,8 @@ def minimal_drag_plan() -> tuple[Plan, np.ndarray]:
     ops.append(SHIFT, [0, 4], [0, 5], [0, 0], [0, -1])  # the empty tweezer (0,5) arrives over (0,4)
     ops.append(SHIFT, [0, 4], [0, 4], [1, 1], [0, 0])  # and moves on, at full depth
     ops.append(IMPLANT, [1, 5], [0, 4])
-    steps = [(_flat(4, 5), _flat(4, 4)), (_flat(0, 0), _flat(1, 0)), (_flat(4, 4), _flat(5, 4)), (_flat(4, 0), _flat(5, 0))]
+    steps = [(_flat(4, 5), _flat(4, 4)),  # slot 1 (x shift)
+             (_flat(0, 0), _flat(1, 0)), (_flat(4, 4), _flat(5, 4)), (_flat(4, 0), _flat(5, 0))]  # slot 2 (y)
     return Plan(steps=np.array(steps, dtype=np.int32), operations=ops), occ
 
 

@@ -19,7 +19,7 @@ Loss: ``survival_transfer`` per extract/implant, ``survival_step`` per one-site 
 and dropped atoms still lose atoms: they are mistakes, not noise). Counters record every cause.
 
 Speed: a grid shot applies ~500 slots and as many vacuum steps, so each is one numba kernel call over the
-world's own arrays (``move_model.tweezer_slot``, ``move_model.chain_slot``, ``_vacuum``) instead of a dozen small numpy ops. The
+world's own arrays (``mm.tweezer_slot``, ``mm.chain_slot``, ``_vacuum``) instead of a dozen small numpy ops. The
 plain-numpy versions stay as the reference (``World(reference=True)``) and a test holds the two equal. Random
 draws come from ``_Uniforms``, a buffer filled from ``rng`` in order: handing a ``Generator`` to a numba
 function costs ~20 us per call (more than the slot itself), and since every draw the world makes is a uniform
@@ -160,9 +160,9 @@ class World:
         self.lossless = sim.lossless if lossless is None else lossless
         if (arr.ny, arr.nx) != (self.ny, self.nx):
             self.nx, self.ny = arr.nx, arr.ny
-            self._move = MoveState(self.ny, self.nx)  # the move model's state and scratch
-            self._static = self._move.static
-            self._held = self._move.held  # atoms in tweezers, at the tweezer's site
+            self._static = np.zeros((self.ny, self.nx), dtype=bool)
+            self._held = np.zeros((self.ny, self.nx), dtype=bool)  # atoms in tweezers, at the tweezer's site
+            self._move = MoveState(self.ny, self.nx)  # the move model's scratch (and how held atoms were taken)
 
     # --- state -----------------------------------------------------------------------------------------
 
@@ -231,11 +231,6 @@ class World:
                 grid.flat[gone] = False
                 self.counters.lost_vacuum += int(gone.size)
 
-    def _survive(self, n: int, p: float) -> np.ndarray:
-        if self.lossless or p >= 1.0:
-            return np.ones(n, dtype=bool)
-        return self._uniforms.take(n) < p
-
     # --- slots -----------------------------------------------------------------------------------------
 
     def apply_slot(self, x_tracks: np.ndarray, y_tracks: np.ndarray | None) -> None:
@@ -300,12 +295,13 @@ class World:
             u.ensure(need)
         if self.reference:
             u.pos = mm.tweezer_slot_reference(
-                yt, xt, FULL_FRACTION, st.static, st.held, st.held_mark, u.buf, u.pos,
+                yt, xt, FULL_FRACTION, self._static, self._held, st.held_mark, u.buf, u.pos,
                 self.survival_transfer if draw_transfer else None, self.survival_step if draw_step else None, events,
             )  # fmt: skip
             return
         u.pos = mm.tweezer_slot(
-            yt, xt, FULL_FRACTION, st.static, st.held, st.held_mark, st.static_id, st.held_id, st.atom_stats, False,
+            yt, xt, FULL_FRACTION, self._static, self._held, st.held_mark, st.static_id, st.held_id, st.atom_stats,
+            False,
             st.arrivals, st.tweezer_flags, st.tweezer_id, st.tweezer_mark, u.buf, u.pos,
             draw_transfer, self.survival_transfer, draw_step, self.survival_step, events,
         )  # fmt: skip
@@ -352,8 +348,10 @@ def _warm_up() -> None:
     _vacuum(grid, grid.copy(), u, 0, 1.0)
     st = MoveState(1, 1)
     ev = mm.new_events()
-    mm.tweezer_slot(one, one, 0.5, st.static, st.held, st.held_mark, st.static_id, st.held_id, st.atom_stats, False,
-                    st.arrivals, st.tweezer_flags, st.tweezer_id, st.tweezer_mark, u, 0, False, 1.0, False, 1.0, ev)  # fmt: skip
+    mm.tweezer_slot(
+        one, one, 0.5, st.static, st.held, st.held_mark, st.static_id, st.held_id, st.atom_stats, False,
+        st.arrivals, st.tweezer_flags, st.tweezer_id, st.tweezer_mark, u, 0, False, 1.0, False, 1.0, ev,
+    )  # fmt: skip
     mm.chain_slot(one, 0.5, st.static[0], st.static_id[0], st.atom_stats, False, st.chain_scratch, u, 0, False, 1.0, ev)
     _warm_up.done = True  # type: ignore[attr-defined]
 

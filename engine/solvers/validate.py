@@ -161,7 +161,9 @@ def _check_tweezer_grammar(ops: Operations, ny: int, nx: int) -> int:
     return batches
 
 
-def _play(ops: Operations, state: mm.MoveState, chain: bool, *, stop_on_capture: bool = False) -> tuple[int, np.ndarray]:
+def _play(
+    ops: Operations, state: mm.MoveState, chain: bool, *, stop_on_capture: bool = False
+) -> tuple[int, np.ndarray]:
     """Run the move model over all slots (identities on); returns (slot of the first fault or ``len(ops)``, events)."""
     events = mm.new_events()
     n = len(ops)
@@ -201,7 +203,8 @@ def replay(ops: Operations, occupancy: np.ndarray, *, trap_source: str) -> PlanR
     if at < len(ops):
         if ev[mm.EV_LOST_COLLISION]:
             where = _site(int(ev[mm.EV_FIRST_COLLISION]), nx)
-            raise _fail(ops, at, f"two atoms meet at {where}" if chain else f"a loaded tweezer lands on the atom at {where}")
+            why = f"two atoms meet at {where}" if chain else f"a loaded tweezer lands on the atom at {where}"
+            raise _fail(ops, at, why)
         where = _site(int(ev[mm.EV_FIRST_DROP]), nx)
         if chain:
             raise _fail(ops, at, f"a moving tone enters {where}, which holds an atom (its own tone fades out under it)")

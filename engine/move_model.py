@@ -79,6 +79,7 @@ _MARK_DRAGGED = 2
 
 
 def new_events() -> np.ndarray:
+    """A zeroed event record (the ``EV_FIRST_*`` sites at -1: none yet)."""
     ev = np.zeros(N_EVENTS, dtype=np.int64)
     ev[EV_FIRST_COLLISION:] = -1
     return ev
@@ -89,16 +90,17 @@ class MoveState:
 
     ``static``/``held``: ``bool[ny, nx]`` (held atoms sit at their tweezer's site); ``held_mark``: how each
     held atom was taken (for the drag count); ``static_id``/``held_id``/``atom_stats``: identities and
-    per-atom counts, used only when a kernel runs with ``track_ids``.
+    per-atom counts, used only when a kernel runs with ``track_ids``. (The simulated world keeps its own
+    ``static``/``held`` grids and uses the rest.)
     """
 
-    def __init__(self, ny: int, nx: int, n_atoms: int = 0) -> None:
+    def __init__(self, ny: int, nx: int) -> None:
         self.static = np.zeros((ny, nx), dtype=np.bool_)
         self.held = np.zeros((ny, nx), dtype=np.bool_)
         self.held_mark = np.zeros((ny, nx), dtype=np.int8)
         self.static_id = np.full((ny, nx), -1, dtype=np.int64)
         self.held_id = np.full((ny, nx), -1, dtype=np.int64)
-        self.atom_stats = np.zeros((n_atoms, 3), dtype=np.int64)
+        self.atom_stats = np.zeros((0, 3), dtype=np.int64)
         self.arrivals = np.zeros((ny, nx), dtype=np.int64)
         self.tweezer_flags = np.zeros((ny * nx, 4), dtype=np.bool_)
         self.tweezer_id = np.full(ny * nx, -1, dtype=np.int64)

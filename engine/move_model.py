@@ -32,7 +32,7 @@ flat index of the first site where a fault happened (-1 if none), for the valida
 numbers are read from a pre-drawn buffer ``u`` from position ``pos`` (the world's ``_Uniforms``): step draws
 in tweezer order first, then transfer draws in tweezer order, one per draw that the loss model asks for.
 
-With ``track_ids`` the kernels also carry atom identities (``static_id``, ``held_id``: -1 where empty) and
+With ``track_ids`` the kernels also carry atom identities (``ids``: -1 where empty) and
 count per atom (``atom_stats[a]``: steps, pick-ups + captures, captures) for the validator's accounting.
 The plain-numpy twins (``*_reference``) are the readable statement of the same rules, kept to test the
 kernels against.
@@ -89,7 +89,7 @@ class MoveState:
     """Atoms in static traps and tweezers plus the kernels' scratch, allocated once per array size.
 
     ``static``/``held``: ``bool[ny, nx]`` (held atoms sit at their tweezer's site); ``held_mark``: how each
-    held atom was taken (for the drag count); ``static_id``/``held_id``/``atom_stats``: identities and
+    held atom was taken (for the drag count); ``ids`` (static, held) and ``atom_stats``: identities and
     per-atom counts, used only when a kernel runs with ``track_ids``. (The simulated world keeps its own
     ``static``/``held`` grids and uses the rest.)
     """
@@ -98,13 +98,10 @@ class MoveState:
         self.static = np.zeros((ny, nx), dtype=np.bool_)
         self.held = np.zeros((ny, nx), dtype=np.bool_)
         self.held_mark = np.zeros((ny, nx), dtype=np.int8)
-        self.static_id = np.full((ny, nx), -1, dtype=np.int64)
-        self.held_id = np.full((ny, nx), -1, dtype=np.int64)
+        self.ids = np.full((2, ny, nx), -1, dtype=np.int64)  # atom ids in static traps, in tweezers
         self.atom_stats = np.zeros((0, 3), dtype=np.int64)
         self.arrivals = np.zeros((ny, nx), dtype=np.int64)
-        self.tweezer_flags = np.zeros((ny * nx, 4), dtype=np.bool_)
-        self.tweezer_id = np.full(ny * nx, -1, dtype=np.int64)
-        self.tweezer_mark = np.zeros(ny * nx, dtype=np.int8)
+        self.tweezers = np.zeros((ny * nx, 8), dtype=np.int64)  # per tweezer scratch of tweezer_slot
         self.chain_scratch = np.zeros((3, nx), dtype=np.int64)
         self.y_tracks = np.zeros((ny, 4), dtype=np.float32)
         self.x_tracks = np.zeros((2 * nx, 4), dtype=np.float32)  # a chain slot: a track per site + fade-ins
@@ -115,10 +112,9 @@ class MoveState:
         self.static[:] = occ
         self.held[:] = False
         self.held_mark[:] = 0
-        self.static_id[:] = -1
-        self.held_id[:] = -1
+        self.ids[:] = -1
         n = int(occ.sum())
-        self.static_id[occ] = np.arange(n)
+        self.ids[0][occ] = np.arange(n)
         self.atom_stats = np.zeros((n, 3), dtype=np.int64)
 
 
@@ -128,16 +124,15 @@ class MoveState:
 @njit(cache=True, nogil=True)
 def tweezer_slot(
     yt: np.ndarray, xt: np.ndarray, full_fraction: float,
-    static: np.ndarray, held: np.ndarray, held_mark: np.ndarray,
-    static_id: np.ndarray, held_id: np.ndarray, atom_stats: np.ndarray, track_ids: bool,
-    arrivals: np.ndarray, flags: np.ndarray, tw_id: np.ndarray, tw_mark: np.ndarray,
-    u: np.ndarray, pos: int, draw_transfer: bool, p_transfer: float, draw_step: bool, p_step: float,
+    static: np.ndarray, held: np.ndarray, held_mark: np.ndarray, ids: np.ndarray, atom_stats: np.ndarray,
+    track_ids: bool, arrivals: np.ndarray, tw: np.ndarray, u: np.ndarray, pos: int, draw_transfer: bool, p_transfer: float, draw_step: bool, p_step: float,
     events: np.ndarray,
 ) -> int:  # fmt: skip
     """One slot of product-set tweezers (tweezer t = y track i x x track j, t = i * mx + j). Returns ``pos``.
 
-    ``flags[t]`` columns: full depth at start, at end, loaded, moved. Scratch: ``arrivals`` (int, per site),
-    ``tw_id``, ``tw_mark`` (at least ``my * mx`` rows). Tracks from a real slot never share a site; when
+    Scratch: ``arrivals`` (per site) and ``tw`` (at least ``my * mx`` rows; columns: full depth at start,
+    at end, loaded, moved, atom id, how it was taken, end row, end column). ``ids[0]``/``ids[1]``: identities of the atoms in
+    static traps / tweezers (read and written only with ``track_ids``). Tracks from a real slot never share a site; when
     they do, the first tweezer (in ``t`` order) over a site takes what is there, and every atom that ends a
     slot at a site together with another is lost in the collision.
     """
@@ -150,20 +145,22 @@ def tweezer_slot(
     for i in range(my):
         for j in range(mx):
             t = i * mx + j
-            flags[t, 0] = np.float32(yt[i, 2] * xt[j, 2]) >= full
-            flags[t, 1] = np.float32(yt[i, 3] * xt[j, 3]) >= full
-            flags[t, 3] = int(yt[i, 0]) != int(yt[i, 1]) or int(xt[j, 0]) != int(xt[j, 1])
-            flags[t, 2] = False
-            if flags[t, 0]:
+            tw[t, 0] = np.float32(yt[i, 2] * xt[j, 2]) >= full
+            tw[t, 1] = np.float32(yt[i, 3] * xt[j, 3]) >= full
+            tw[t, 6] = int(yt[i, 1])  # the site the tweezer ends the slot over
+            tw[t, 7] = int(xt[j, 1])
+            tw[t, 3] = int(yt[i, 0]) != tw[t, 6] or int(xt[j, 0]) != tw[t, 7]
+            tw[t, 2] = False
+            if tw[t, 0]:
                 r0 = int(yt[i, 0])
                 c0 = int(xt[j, 0])
                 # 1. the first full-depth tweezer over a held atom holds it from now on
                 if held[r0, c0]:
                     held[r0, c0] = False
-                    flags[t, 2] = True
-                    tw_mark[t] = held_mark[r0, c0]
+                    tw[t, 2] = True
+                    tw[t, 5] = held_mark[r0, c0]
                     if track_ids:
-                        tw_id[t] = held_id[r0, c0]
+                        tw[t, 4] = ids[1, r0, c0]
     # held atoms that no full-depth tweezer covers at the start fall out
     for r in range(ny):
         for c in range(nx):
@@ -174,40 +171,40 @@ def tweezer_slot(
                 held[r, c] = False
     # 2. transport: one step per loaded tweezer that moves
     for t in range(n):
-        if flags[t, 2] and flags[t, 3]:
+        if tw[t, 2] and tw[t, 3]:
             events[EV_STEPS] += 1
-            if tw_mark[t] == _MARK_CAPTURED:
+            if tw[t, 5] == _MARK_CAPTURED:
                 events[EV_DRAGGED] += 1
-                tw_mark[t] = _MARK_DRAGGED
+                tw[t, 5] = _MARK_DRAGGED
             if track_ids:
-                atom_stats[tw_id[t], STAT_STEPS] += 1
+                atom_stats[tw[t, 4], STAT_STEPS] += 1
             if draw_step:
                 ok = u[pos] < p_step
                 pos += 1
                 if not ok:
                     events[EV_LOST_STEP] += 1
-                    flags[t, 2] = False
+                    tw[t, 2] = False
     # 3a. collisions: a site where a loaded tweezer ends with another atom (static or loaded) loses them all
     for t in range(n):
-        if flags[t, 2]:
-            arrivals[int(yt[t // mx, 1]), int(xt[t % mx, 1])] += 1
+        if tw[t, 2]:
+            arrivals[tw[t, 6], tw[t, 7]] += 1
     for t in range(n):
-        r1 = int(yt[t // mx, 1])
-        c1 = int(xt[t % mx, 1])
-        if flags[t, 2] and arrivals[r1, c1] + static[r1, c1] >= 2:
+        r1 = tw[t, 6]
+        c1 = tw[t, 7]
+        if tw[t, 2] and arrivals[r1, c1] + static[r1, c1] >= 2:
             events[EV_LOST_COLLISION] += 1
             if events[EV_FIRST_COLLISION] < 0:
                 events[EV_FIRST_COLLISION] = r1 * nx + c1
-            flags[t, 2] = False
+            tw[t, 2] = False
             if static[r1, c1]:
                 events[EV_LOST_COLLISION] += 1
                 static[r1, c1] = False
     # 3b. per tweezer: implant, keep holding, or take the atom below
     for t in range(n):
-        r1 = int(yt[t // mx, 1])
-        c1 = int(xt[t % mx, 1])
-        on1 = flags[t, 1]
-        if flags[t, 2]:
+        r1 = tw[t, 6]
+        c1 = tw[t, 7]
+        on1 = tw[t, 1]
+        if tw[t, 2]:
             if not on1:
                 events[EV_IMPLANTED] += 1
                 ok = True
@@ -217,16 +214,16 @@ def tweezer_slot(
                 if ok:
                     static[r1, c1] = True
                     if track_ids:
-                        static_id[r1, c1] = tw_id[t]
+                        ids[0, r1, c1] = tw[t, 4]
                 else:
                     events[EV_LOST_TRANSFER] += 1
             else:
                 held[r1, c1] = True
-                held_mark[r1, c1] = tw_mark[t]
+                held_mark[r1, c1] = tw[t, 5]
                 if track_ids:
-                    held_id[r1, c1] = tw_id[t]
+                    ids[1, r1, c1] = tw[t, 4]
         elif on1 and static[r1, c1] and arrivals[r1, c1] == 0:
-            captured = flags[t, 0]
+            captured = tw[t, 0]
             if captured:
                 events[EV_CAPTURED] += 1
                 if events[EV_FIRST_CAPTURE] < 0:
@@ -236,8 +233,8 @@ def tweezer_slot(
             static[r1, c1] = False
             a = -1
             if track_ids:
-                a = static_id[r1, c1]
-                static_id[r1, c1] = -1
+                a = ids[0, r1, c1]
+                ids[0, r1, c1] = -1
                 atom_stats[a, STAT_PICKUPS] += 1
                 if captured:
                     atom_stats[a, STAT_CAPTURES] += 1
@@ -249,7 +246,7 @@ def tweezer_slot(
                 held[r1, c1] = True
                 held_mark[r1, c1] = _MARK_CAPTURED if captured else _MARK_PICKED
                 if track_ids:
-                    held_id[r1, c1] = a
+                    ids[1, r1, c1] = a
             else:
                 events[EV_LOST_TRANSFER] += 1
     return pos
@@ -507,9 +504,9 @@ def operation_tracks(
 def replay_operations(
     kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
     first: int, stop: int, chain: bool,
-    static: np.ndarray, held: np.ndarray, held_mark: np.ndarray, static_id: np.ndarray, held_id: np.ndarray,
-    atom_stats: np.ndarray, track_ids: bool, arrivals: np.ndarray, flags: np.ndarray, tw_id: np.ndarray,
-    tw_mark: np.ndarray, chain_scratch: np.ndarray, yt: np.ndarray, xt: np.ndarray, events: np.ndarray,
+    static: np.ndarray, held: np.ndarray, held_mark: np.ndarray, ids: np.ndarray, atom_stats: np.ndarray,
+    track_ids: bool, arrivals: np.ndarray, tw: np.ndarray, chain_scratch: np.ndarray, yt: np.ndarray,
+    xt: np.ndarray, events: np.ndarray,
     stop_on_fault: bool, stop_on_capture: bool,
 ) -> int:  # fmt: skip
     """Play planned slots ``first..stop-1`` through the move model, losses off.
@@ -521,7 +518,7 @@ def replay_operations(
     ny, nx = static.shape
     u = np.zeros(1)
     row_static = static[0]
-    row_id = static_id[0]
+    row_id = ids[0, 0]
     for i in range(first, stop):
         k = int(kind[i])
         if chain:
@@ -530,8 +527,8 @@ def replay_operations(
         else:
             my = operation_tracks(k, y_site[i], y_delta[i], ny, False, yt)
             mx = operation_tracks(k, x_site[i], x_delta[i], nx, False, xt)
-            tweezer_slot(yt[:my], xt[:mx], 0.5, static, held, held_mark, static_id, held_id, atom_stats, track_ids,
-                         arrivals, flags, tw_id, tw_mark, u, 0, False, 1.0, False, 1.0, events)  # fmt: skip
+            tweezer_slot(yt[:my], xt[:mx], 0.5, static, held, held_mark, ids, atom_stats, track_ids, arrivals, tw, u,
+                         0, False, 1.0, False, 1.0, events)  # fmt: skip
         if stop_on_fault and (
             events[EV_LOST_COLLISION] > 0 or events[EV_LOST_DROPPED] > 0 or events[EV_LOST_RELEASED] > 0
         ):

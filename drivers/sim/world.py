@@ -163,6 +163,7 @@ class World:
             self._static = np.zeros((self.ny, self.nx), dtype=bool)
             self._held = np.zeros((self.ny, self.nx), dtype=bool)  # atoms in tweezers, at the tweezer's site
             self._move = MoveState(self.ny, self.nx)  # the move model's scratch (and how held atoms were taken)
+            self._move_events = mm.new_events()
 
     # --- state -----------------------------------------------------------------------------------------
 
@@ -240,7 +241,8 @@ class World:
         plans with; here the losses are drawn from the world's random numbers.
         """
         self.counters.slots += 1
-        events = mm.new_events()
+        events = self._move_events
+        events[:] = 0  # (the world does not use the first-fault sites the validator reads)
         if self.trap_source == "aod":
             self._apply_chain(np.ascontiguousarray(x_tracks, dtype=np.float32), events)
         else:
@@ -248,16 +250,17 @@ class World:
             self._apply_tweezers(
                 np.ascontiguousarray(x_tracks, dtype=np.float32), np.ascontiguousarray(yt, dtype=np.float32), events
             )
+        e = events.tolist()  # Python ints: cheaper to add than numpy scalars, ~500 slots a shot
         c = self.counters
-        c.transfers += int(events[mm.EV_PICKED] + events[mm.EV_CAPTURED] + events[mm.EV_IMPLANTED])
-        c.captured += int(events[mm.EV_CAPTURED])
-        c.dragged += int(events[mm.EV_DRAGGED])
-        c.steps += int(events[mm.EV_STEPS])
-        c.lost_transfer += int(events[mm.EV_LOST_TRANSFER])
-        c.lost_step += int(events[mm.EV_LOST_STEP])
-        c.lost_collision += int(events[mm.EV_LOST_COLLISION])
-        c.lost_dropped += int(events[mm.EV_LOST_DROPPED])
-        c.lost_released += int(events[mm.EV_LOST_RELEASED])
+        c.transfers += e[mm.EV_PICKED] + e[mm.EV_CAPTURED] + e[mm.EV_IMPLANTED]
+        c.captured += e[mm.EV_CAPTURED]
+        c.dragged += e[mm.EV_DRAGGED]
+        c.steps += e[mm.EV_STEPS]
+        c.lost_transfer += e[mm.EV_LOST_TRANSFER]
+        c.lost_step += e[mm.EV_LOST_STEP]
+        c.lost_collision += e[mm.EV_LOST_COLLISION]
+        c.lost_dropped += e[mm.EV_LOST_DROPPED]
+        c.lost_released += e[mm.EV_LOST_RELEASED]
 
     def _apply_chain(self, tracks: np.ndarray, events: np.ndarray) -> None:
         """The chain conveyor (``move_model.chain_slot``; ``reference``: ``chain_slot_reference``)."""
@@ -275,7 +278,7 @@ class World:
             return
         st = self._move
         u.pos = mm.chain_slot(
-            tracks, FULL_FRACTION, atoms, st.static_id[0], st.atom_stats, False, st.chain_scratch, u.buf, u.pos,
+            tracks, FULL_FRACTION, atoms, st.ids[0, 0], st.atom_stats, False, st.chain_scratch, u.buf, u.pos,
             draw, self.survival_step, events,
         )  # fmt: skip
 
@@ -283,10 +286,8 @@ class World:
         """The product-set tweezers (``move_model.tweezer_slot``; ``reference``: ``tweezer_slot_reference``)."""
         st = self._move
         n_tweezers = xt.shape[0] * yt.shape[0]
-        if st.tweezer_flags.shape[0] < n_tweezers:  # more tracks than sites: grow the scratch once
-            st.tweezer_flags = np.zeros((n_tweezers, 4), dtype=np.bool_)
-            st.tweezer_id = np.full(n_tweezers, -1, dtype=np.int64)
-            st.tweezer_mark = np.zeros(n_tweezers, dtype=np.int8)
+        if st.tweezers.shape[0] < n_tweezers:  # more tracks than sites: grow the scratch once
+            st.tweezers = np.zeros((n_tweezers, 8), dtype=np.int64)
         draw_transfer = not self.lossless and self.survival_transfer < 1.0
         draw_step = not self.lossless and self.survival_step < 1.0
         u = self._uniforms
@@ -300,9 +301,8 @@ class World:
             )  # fmt: skip
             return
         u.pos = mm.tweezer_slot(
-            yt, xt, FULL_FRACTION, self._static, self._held, st.held_mark, st.static_id, st.held_id, st.atom_stats,
-            False,
-            st.arrivals, st.tweezer_flags, st.tweezer_id, st.tweezer_mark, u.buf, u.pos,
+            yt, xt, FULL_FRACTION, self._static, self._held, st.held_mark, st.ids, st.atom_stats, False, st.arrivals,
+            st.tweezers, u.buf, u.pos,
             draw_transfer, self.survival_transfer, draw_step, self.survival_step, events,
         )  # fmt: skip
 
@@ -349,10 +349,10 @@ def _warm_up() -> None:
     st = MoveState(1, 1)
     ev = mm.new_events()
     mm.tweezer_slot(
-        one, one, 0.5, st.static, st.held, st.held_mark, st.static_id, st.held_id, st.atom_stats, False,
-        st.arrivals, st.tweezer_flags, st.tweezer_id, st.tweezer_mark, u, 0, False, 1.0, False, 1.0, ev,
+        one, one, 0.5, st.static, st.held, st.held_mark, st.ids, st.atom_stats, False, st.arrivals, st.tweezers, u, 0,
+        False, 1.0, False, 1.0, ev,
     )  # fmt: skip
-    mm.chain_slot(one, 0.5, st.static[0], st.static_id[0], st.atom_stats, False, st.chain_scratch, u, 0, False, 1.0, ev)
+    mm.chain_slot(one, 0.5, st.static[0], st.ids[0, 0], st.atom_stats, False, st.chain_scratch, u, 0, False, 1.0, ev)
     _warm_up.done = True  # type: ignore[attr-defined]
 
 

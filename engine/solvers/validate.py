@@ -169,9 +169,8 @@ def _play(
     n = len(ops)
     at = mm.replay_operations(
         ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, 0, n, chain,
-        state.static, state.held, state.held_mark, state.static_id, state.held_id, state.atom_stats, True,
-        state.arrivals, state.tweezer_flags, state.tweezer_id, state.tweezer_mark, state.chain_scratch,
-        state.y_tracks, state.x_tracks, events, True, stop_on_capture,
+        state.static, state.held, state.held_mark, state.ids, state.atom_stats, True, state.arrivals,
+        state.tweezers, state.chain_scratch, state.y_tracks, state.x_tracks, events, True, stop_on_capture,
     )  # fmt: skip
     return at, events
 
@@ -215,7 +214,7 @@ def replay(ops: Operations, occupancy: np.ndarray, *, trap_source: str) -> PlanR
         raise InvalidPlan("the plan ends with atoms still in the tweezers")
     stats = state.atom_stats
     site = np.full(stats.shape[0], -1, dtype=np.int64)
-    flat_id = state.static_id.ravel()
+    flat_id = state.ids[0].ravel()
     occupied = np.flatnonzero(flat_id >= 0)
     site[flat_id[occupied]] = occupied
     return PlanReport(

@@ -81,3 +81,18 @@ def test_validate_checks_target_and_steps_agree() -> None:
         validate(wrong_steps, occ, target, trap_source="aod")
     with pytest.raises(InvalidPlan, match="leaves target traps empty"):
         validate(good, occ, grid(["001"]), trap_source="aod")
+
+
+def test_validate_follows_each_atom_not_only_the_occupancy() -> None:
+    """Two atoms swap corners: the plan's steps give the same traps and the same number of steps as the
+    slots, but move each atom somewhere else, so they do not describe what the slots do."""
+    occ = grid(["10", "01"])
+    ops = ops_of(2, 2, [
+        (EXTRACT, [0], [0]), (SHIFT, [0], [0], [0], [1]), (IMPLANT, [0], [1]),  # (0,0) -> (0,1)
+        (EXTRACT, [1], [1]), (SHIFT, [1], [1], [0], [-1]), (IMPLANT, [1], [0]),  # (1,1) -> (1,0)
+    ])  # fmt: skip
+    good = Plan(steps=np.array([[0, 1], [3, 2]], dtype=np.int32), operations=ops)
+    assert validate(good, occ, grid(["01", "10"]), trap_source="slm").atoms_moved == 2
+    swapped = Plan(steps=np.array([[0, 2], [3, 1]], dtype=np.int32), operations=ops)
+    with pytest.raises(InvalidPlan, match=r"the atom from row 0, col 0: the slots move it 1 sites to row 0, col 1"):
+        validate(swapped, occ, grid(["01", "10"]), trap_source="slm")

@@ -20,8 +20,8 @@ Grammar (``docs/ARCHITECTURE.md``; the crossed-AOD model is worked through in ``
 
 Physics (the move model): a loaded tweezer may not meet an atom (moving onto one, or implanting onto one);
 an ``IDLE`` slot while atoms are held drops them (the AWG plays silence). An atom that an empty tweezer
-captures on its way must be one the plan's steps move (it is **accounted**); otherwise the plan disturbs an
-atom it did not mean to move, and is rejected. Every atom's steps and final trap in the replay must match the
+captures on its way, or that an extract picks up, must be one the plan's steps move (it is **accounted**);
+otherwise the plan disturbs an atom it did not mean to move, and is rejected. Every atom's steps and final trap in the replay must match the
 plan's one-site steps.
 
 ``trap_source = "aod"`` (a chain whose traps are the x tones; every slot is a conveyor ``SHIFT``):
@@ -284,7 +284,8 @@ def replay_steps(steps: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
 
 def validate(plan: Plan, occupancy: np.ndarray, target: np.ndarray, *, trap_source: str) -> PlanReport:
     """Replay ``plan`` from ``occupancy``; check it fills ``target``, that its ``steps`` move every atom as
-    its slots do, and that every atom a tweezer captures on its way is one the steps move.
+    its slots do, and that every atom a tweezer takes (by an extract or a capture on its way) is one the
+    steps move.
 
     Raises ``InvalidPlan`` with the first broken rule; returns the replay's figures.
     """
@@ -303,6 +304,12 @@ def validate(plan: Plan, occupancy: np.ndarray, target: np.ndarray, *, trap_sour
             f"and captures it; {unaccounted.size} atom(s) are disturbed that the plan's steps do not move "
             f"(first from {_site(int(start[unaccounted[0]]), nx)})",
         )  # fmt: skip
+    idle = np.flatnonzero((report.atom_pickups > 0) & (plan_atom_steps == 0))
+    if idle.size:
+        raise InvalidPlan(
+            f"the slots pick up {idle.size} atom(s) that the plan's steps never move (each pick-up and implant "
+            f"risks the atom), first the one at {_site(int(start[idle[0]]), nx)}"
+        )
     if not np.array_equal(after_steps, report.occupancy):
         raise InvalidPlan("the plan's one-site steps and its waveform slots leave the atoms in different traps")
     if report.steps != plan.n_steps:

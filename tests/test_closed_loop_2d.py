@@ -46,7 +46,10 @@ _engines: dict[tuple[int, int], Engine] = {}
 
 def _shots(config: SystemConfig, n: int) -> list:
     """``n`` shots with ``config``; one simulated lab per array size, reconfigured between tests as the
-    server does between shots (building a lab compiles its kernels, which takes seconds)."""
+    server does between shots (building a lab compiles its kernels, which takes seconds).
+
+    The world (the move model on the decoded samples) must see every plan carried out as planned: no atom
+    captured by a tweezer that was not meant to take it, none lost (the shots are lossless)."""
     key = (config.array.nx, config.array.ny)
     engine = _engines.get(key)
     if engine is None:
@@ -54,7 +57,11 @@ def _shots(config: SystemConfig, n: int) -> list:
         engine = _engines[key] = Engine(config, devices, lab=lab)
     else:
         engine.apply(config)
-    return [engine.run_shot() for _ in range(n)]
+    counters = engine.lab.world.counters
+    captured, lost = counters.captured, counters.lost
+    records = [engine.run_shot() for _ in range(n)]
+    assert counters.captured == captured and counters.lost == lost, counters.as_dict()
+    return records
 
 
 def _within_two_cycles(records: list, n_target: int) -> tuple[int, int]:

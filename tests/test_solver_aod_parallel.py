@@ -44,7 +44,7 @@ def _check(planner: AODParallelPlanner, occ: np.ndarray, target: np.ndarray) -> 
     plan = planner.batch()
     report = validate(plan, occ, target, trap_source="slm")  # raises InvalidPlan on any broken rule
     assert plan.n_steps == n_steps and plan.algorithm == "aod-parallel"
-    assert report.target_reached and report.occupancy.sum() == occ.sum()
+    assert report.target_reached and report.occupancy.sum() == occ.sum() and report.captures == 0
     return {"slots": plan.n_slots, "pickups": report.max_pickups_per_atom}
 
 
@@ -100,12 +100,15 @@ def test_random_shapes_and_sizes() -> None:
 
 
 def test_paper_problem_slots(planners) -> None:
-    """32x64 -> 32x32 at loading 0.6: far fewer slots than the reference's ~826; transfers trade slots for pick-ups."""
+    """32x64 -> 32x32 at loading 0.6: far fewer slots than the reference's ~826; transfers trade slots for pick-ups.
+
+    (Under the complete move model a Fill needs a hole at the barrier row itself, not just next to it: 100
+    instances gave 279 slots median, 309 max, where the incomplete model allowed 180 / 201.)"""
     target = centre_target(nx=32, ny=64, count=1024)
     fast = [_check(planners[(64, 32, "slots")], occ, target) for occ in _instances(64, 32, target, 8)]
     few = [_check(planners[(64, 32, "transfers")], occ, target) for occ in _instances(64, 32, target, 8)]
-    assert np.median([f["slots"] for f in fast]) <= 200
-    assert max(f["slots"] for f in fast) <= 215
+    assert np.median([f["slots"] for f in fast]) <= 290
+    assert max(f["slots"] for f in fast) <= 310
     assert max(f["pickups"] for f in few) <= 4 < max(f["pickups"] for f in fast)
     assert np.median([f["slots"] for f in few]) < 500
 
@@ -115,7 +118,7 @@ def test_paper_problem_slots_100_instances() -> None:
     planner = AODParallelPlanner(32, 64)
     target = centre_target(nx=32, ny=64, count=1024)
     slots = [_check(planner, occ, target)["slots"] for occ in _instances(64, 32, target, 100)]
-    assert np.median(slots) <= 200 and max(slots) <= 210
+    assert np.median(slots) <= 290 and max(slots) <= 320
 
 
 def test_batches_move_many_columns_at_once(planners) -> None:

@@ -105,7 +105,10 @@ def test_hops_run_in_parallel() -> None:
     occ = instances(mask, 1, 3)[0]
     plan = solve(occ, mask, algorithm="assignment")
     report = validate(plan, occ, mask, trap_source="slm")
-    assert report.batches < report.atoms_moved / 2  # several atoms per product set on average
+    # hops share product sets: 128 batches for 217 atoms here. (Every crossing of a batch's tones is a
+    # tweezer that must stay off atoms at every slot, not only at the start, so at loading 0.6 fewer hops
+    # fit together than the 93 batches an incomplete model allowed.)
+    assert report.batches < 0.7 * report.atoms_moved and report.captures == 0
 
 
 _BATCH_SCRIPT = """

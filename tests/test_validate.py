@@ -81,3 +81,29 @@ def test_validate_checks_target_and_steps_agree() -> None:
         validate(wrong_steps, occ, target, trap_source="aod")
     with pytest.raises(InvalidPlan, match="leaves target traps empty"):
         validate(good, occ, grid(["001"]), trap_source="aod")
+
+
+def test_validate_follows_each_atom_not_only_the_occupancy() -> None:
+    """Two atoms swap corners: the plan's steps give the same traps and the same number of steps as the
+    slots, but move each atom somewhere else, so they do not describe what the slots do."""
+    occ = grid(["10", "01"])
+    ops = ops_of(2, 2, [
+        (EXTRACT, [0], [0]), (SHIFT, [0], [0], [0], [1]), (IMPLANT, [0], [1]),  # (0,0) -> (0,1)
+        (EXTRACT, [1], [1]), (SHIFT, [1], [1], [0], [-1]), (IMPLANT, [1], [0]),  # (1,1) -> (1,0)
+    ])  # fmt: skip
+    good = Plan(steps=np.array([[0, 1], [3, 2]], dtype=np.int32), operations=ops)
+    assert validate(good, occ, grid(["01", "10"]), trap_source="slm").atoms_moved == 2
+    swapped = Plan(steps=np.array([[0, 2], [3, 1]], dtype=np.int32), operations=ops)
+    with pytest.raises(InvalidPlan, match=r"the atom from row 0, col 0: the slots move it 1 sites to row 0, col 1"):
+        validate(swapped, occ, grid(["01", "10"]), trap_source="slm")
+
+
+def test_an_atom_picked_up_and_put_back_unmoved_is_rejected() -> None:
+    occ = grid(["11", "00"])
+    ops = ops_of(2, 2, [(EXTRACT, [0], [0, 1]), (SHIFT, [0], [0, 1], [1], [0, 0]), (SHIFT, [1], [0, 1], [-1], [0, 0]),
+                        (IMPLANT, [0], [0, 1])])  # fmt: skip
+    steps = np.array([[0, 2], [1, 3], [2, 0], [3, 1]], dtype=np.int32)  # both atoms move: accepted
+    validate(Plan(steps=steps, operations=ops), occ, occ, trap_source="slm")
+    lazy = ops_of(2, 2, [(EXTRACT, [0], [0, 1]), (IMPLANT, [0], [0, 1])])
+    with pytest.raises(InvalidPlan, match="pick up 2 atom"):
+        validate(Plan(steps=np.zeros((0, 2), dtype=np.int32), operations=lazy), occ, occ, trap_source="slm")

@@ -17,6 +17,7 @@ from drivers.sim.decode import SampleDecoder
 from drivers.sim.world import World
 from engine.config import ConfigError, load_config
 from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations
+from engine.solvers.validate import InvalidPlan, replay
 from engine.waveforms import (
     CHAIN_KINDS,
     INNER_UP,
@@ -549,8 +550,8 @@ def test_chain_plans_decode_and_move_atoms_where_planned(shape: str) -> None:
 
 
 def grid_batch_ops(rng, ny: int = 6, nx: int = 8, occ: np.ndarray | None = None):
-    """A random legal batch (extract, 1-3 shifts, implant) and the occupancy it leaves, or None if the
-    random choice would implant onto an occupied trap."""
+    """A random legal batch (extract, 1-3 shifts, implant) and the occupancy the move model says it leaves
+    (empty tweezers may capture atoms on the way), or None if a loaded tweezer would meet an atom."""
     occ = np.zeros((ny, nx), bool) if occ is None else occ
     ys = np.sort(rng.choice(ny, int(rng.integers(1, 4)), replace=False))
     xs = np.sort(rng.choice(nx, int(rng.integers(1, 4)), replace=False))
@@ -563,13 +564,10 @@ def grid_batch_ops(rng, ny: int = 6, nx: int = 8, occ: np.ndarray | None = None)
         ops.append(SHIFT, y, x, dy, dx)
         y, x = y + dy, x + dx
     ops.append(IMPLANT, y, x)
-    ops.want = None
-    static = occ.copy()
-    picked = static[np.ix_(ys, xs)].copy()
-    static[np.ix_(ys, xs)] = False
-    if not np.any(static[np.ix_(y, x)] & picked):
-        static[np.ix_(y, x)] |= picked
-        ops.want = static
+    try:
+        ops.want = replay(ops, occ, trap_source="slm").occupancy
+    except InvalidPlan:
+        ops.want = None
     return ops
 
 

@@ -25,6 +25,13 @@ per column (each atom is picked up at most once there), trading slots for fewer 
 
 Rectangles that span every row are planned transposed (their columns become full-width rows); other
 rectangles are planned in the orientation that needs less horizontal transport.
+
+Crossed AODs make a tweezer at every intersection of the product set, loaded or not, and an empty one that
+arrives over an atom captures it. Every row above a top barrier is picked in every column of a Fill, so the
+only tweezer that can arrive over an unpicked atom is the one from row ``h - 1`` landing on row ``h`` (and
+``h' + 1`` on ``h'``): a Fill is legal in a column only with a hole at the barrier row itself. Balancing
+hops pick one column's atoms only. So every plan is legal under the complete move model by construction
+(``tests/test_move_model.py`` replays random plans through it).
 """
 
 from __future__ import annotations

@@ -582,7 +582,8 @@ def _col_update(
     Window: the ``H = r1 - r0`` consecutive atoms that fill the target rows in order, chosen to minimise
     (max(T, B), |T - B|) where T = how many rows the top window atom still has to come down (the number of
     top Fills the column needs) and B the same for the bottom. A top Fill at barrier h (rows < h move
-    down) is legal iff the column has a hole at h - 1 or h, harmless iff h <= LT (the first window atom
+    down) is legal iff the column has a hole at h (the tweezer of row h - 1 arrives there, and would collide
+    with or capture an atom there whether it is loaded or not), harmless iff h <= LT (the first window atom
     that must not move down), useful iff also T > 0 and the top window atom is above h. Bottom likewise.
     ``cm[c] = (vt0, vt1, ut0, ut1, vb0, vb1, ub0, ub1)``: the column's current bits over barriers;
     ``prow[c, :n]`` its atoms' rows, ascending; ``nwr`` words per bit set (1 if nr <= 64)."""
@@ -672,14 +673,12 @@ def _col_bits(
     ob: np.ndarray, c: int, w: int, nr: int, top_hi: int, bot_lo: int, wt: int, wb: int, t: int, b: int
 ) -> tuple[np.uint64, np.uint64, np.uint64, np.uint64]:
     """Word ``w`` of column ``c``'s legal+harmless / useful bits for top and bottom barriers."""
-    o = ob[c, w]
-    below = ob[c, 0] >> np.uint64(63) if w == 1 else np.uint64(0)  # bit 63 of the previous word
-    above = ob[c, 1] << np.uint64(63) if w == 0 else np.uint64(0)  # bit 0 of the next word
-    both_t = ((o << np.uint64(1)) | below) & o  # h with atoms at h - 1 and h
-    both_b = ((o >> np.uint64(1)) | above) & o  # h with atoms at h and h + 1
-    n_vt = ~both_t & _range_word(1, top_hi, w)
+    # the tweezer of row h - 1 (top run) or h + 1 (bottom run) arrives over row h, loaded or empty (crossed
+    # AODs make a tweezer at every intersection), so the run is legal only where row h has no atom
+    hole = ~ob[c, w]
+    n_vt = hole & _range_word(1, top_hi, w)
     n_ut = n_vt & _range_word(wt + 1, nr, w) if t > 0 else np.uint64(0)
-    n_vb = ~both_b & _range_word(bot_lo, nr - 1, w)
+    n_vb = hole & _range_word(bot_lo, nr - 1, w)
     n_ub = n_vb & _range_word(0, wb, w) if b > 0 else np.uint64(0)
     return n_vt, n_ut, n_vb, n_ub
 

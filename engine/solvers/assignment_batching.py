@@ -7,7 +7,8 @@ starts; it shares one row (column) tone, so its atoms are exactly its product se
 at once (each tone stops where its successor started, so tones never meet).
 
 A batch takes groups whose atoms sit in **distinct rows and distinct columns** across groups: the product
-set of all their tones then holds exactly those atoms (the other crossings must be empty traps, checked).
+set of all their tones then holds exactly those atoms (the other crossings must be empty traps at every
+slot, checked: crossed AODs make a tweezer there too, which would capture an atom it arrives over).
 Each slot every atom takes the next step of its path (its row tone moves for a vertical step, its column
 tone for a horizontal one, never both), so a batch lasts 2 + the longest path. It is legal when
 
@@ -37,7 +38,9 @@ __all__ = ["batch_hops", "count_batched_slots"]
 @njit(cache=True, nogil=True)
 def _pair_ok(a: int, b: int, hop_ptr: np.ndarray, cells: np.ndarray, occ: np.ndarray) -> bool:
     """Atoms of hops ``a`` and ``b`` (different groups) can share a product set: distinct rows and columns
-    kept in the same order at every slot, and empty traps at the two crossings of their tones."""
+    kept in the same order at every slot, and empty traps under the two crossings of their tones at every
+    slot (the crossings are tweezers too: at the start one would pick up an atom, later an empty one would
+    capture it). ``occ`` is the occupancy before the batch (a lifted source counts as occupied: safe)."""
     pa = hop_ptr[a]
     la = hop_ptr[a + 1] - pa - 1
     pb = hop_ptr[b]
@@ -51,9 +54,13 @@ def _pair_ok(a: int, b: int, hop_ptr: np.ndarray, cells: np.ndarray, occ: np.nda
     sr = ra > rb
     sc = ca > cb
     for t in range(1, max(la, lb) + 1):
-        dr = cells[pa + min(t, la), 0] - cells[pb + min(t, lb), 0]
-        dc = cells[pa + min(t, la), 1] - cells[pb + min(t, lb), 1]
-        if dr == 0 or dc == 0 or (dr > 0) != sr or (dc > 0) != sc:
+        ra_t = cells[pa + min(t, la), 0]
+        ca_t = cells[pa + min(t, la), 1]
+        rb_t = cells[pb + min(t, lb), 0]
+        cb_t = cells[pb + min(t, lb), 1]
+        dr = ra_t - rb_t
+        dc = ca_t - cb_t
+        if dr == 0 or dc == 0 or (dr > 0) != sr or (dc > 0) != sc or occ[ra_t, cb_t] or occ[rb_t, ca_t]:
             return False
     return True
 

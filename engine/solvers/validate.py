@@ -1,30 +1,42 @@
-"""The plan validator: replay every waveform slot under the AOD model and prove the plan legal.
+"""The plan validator: replay every waveform slot under the move model and prove the plan legal.
 
-Plain numpy on purpose: it is the independent check of the numba planners, used by tests and benchmarks,
-never in the hot loop. Atoms carry identities through the replay, so the report can say how often one atom
-was picked up and how far it travelled (each pick-up and each step risks losing it).
+The physics is ``engine/move_model.py``, the same code the simulated lab runs on the tracks it decodes from
+the AWG's samples (here with losses off): crossed AODs make a tweezer at every intersection of active tones,
+loaded or not; an empty one at full depth that arrives over an atom captures it and drags it along; a loaded
+one that meets an atom collides. This module adds the grammar of planned operations and the accounting.
+Plain Python around one compiled replay: it is the independent check of the planners, used by tests and
+benchmarks, never in the hot loop. Atoms carry identities through the replay, so the report can say how
+often one atom was picked up and how far it travelled (each pick-up and each step risks losing it).
 
-Rules (``docs/ARCHITECTURE.md``; the crossed-AOD model is worked through in ``aod-parallel.md``):
+Grammar (``docs/ARCHITECTURE.md``; the crossed-AOD model is worked through in ``aod-parallel.md``):
 
 ``trap_source = "slm"`` (static traps, crossed AODs make mobile tweezers at rows x columns):
 - tones are listed strictly ascending, on the grid, with deltas in {-1, 0, +1};
-- ``EXTRACT`` (nothing held yet; deltas 0): every atom at the product set goes into the tweezer above it;
+- ``EXTRACT`` (no tweezers on; deltas 0) ramps tweezers up over the product set;
 - ``SHIFT``: the listed tones must be where the tweezers are; after the move they are still strictly
-  ascending and on the grid (no crossing, no merging); a loaded tweezer that moves must land on an empty trap;
-- ``IMPLANT``: the listed tones are the tweezers; each loaded one leaves its atom in the (empty) trap below;
-- ``IDLE`` while atoms are held drops them (the AWG plays silence): invalid. Nothing may be held at the end.
+  ascending and on the grid (no crossing, no merging);
+- ``IMPLANT``: the listed tones are the tweezers, and they ramp down;
+- nothing may be held at the end.
+
+Physics (the move model): a loaded tweezer may not meet an atom (moving onto one, or implanting onto one);
+an ``IDLE`` slot while atoms are held drops them (the AWG plays silence). An atom that an empty tweezer
+captures on its way, or that an extract picks up, must be one the plan's steps move (it is **accounted**);
+otherwise the plan disturbs an atom it did not mean to move, and is rejected. Every atom's steps and final trap in the replay must match the
+plan's one-site steps.
 
 ``trap_source = "aod"`` (a chain whose traps are the x tones; every slot is a conveyor ``SHIFT``):
 - the listed tones move by their deltas; an atom under a listed tone moves with it; a moving tone may only
-  enter a site that is empty or left by another tone in the same slot; tones never cross or merge.
+  enter a site that is empty or left by another tone in the same slot (else that site's tone fades out
+  under its atom); tones never cross or merge.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from engine import move_model as mm
 from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations, OpKind, Plan
 
 __all__ = ["InvalidPlan", "PlanReport", "replay", "replay_steps", "validate"]
@@ -36,7 +48,13 @@ class InvalidPlan(ValueError):
 
 @dataclass
 class PlanReport:
-    """What a replay measured. ``occupancy`` is the static-trap occupancy after the last slot."""
+    """What a replay measured. ``occupancy`` is the static-trap occupancy after the last slot.
+
+    ``captures``: atoms taken by an empty full-depth tweezer arriving over them (not by an extract);
+    ``dragged``: captured atoms that then moved. Per atom (numbered in row-major order of the starting
+    occupancy): ``atom_steps``, ``atom_pickups`` (extracts and captures), ``atom_captures``, ``atom_site``
+    (its final trap, flat index).
+    """
 
     occupancy: np.ndarray
     slots: int = 0
@@ -45,7 +63,13 @@ class PlanReport:
     atoms_moved: int = 0
     max_steps_per_atom: int = 0
     max_pickups_per_atom: int = 0
+    captures: int = 0
+    dragged: int = 0
     target_reached: bool = False
+    atom_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), repr=False)
+    atom_pickups: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), repr=False)
+    atom_captures: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), repr=False)
+    atom_site: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), repr=False)
 
     def as_dict(self) -> dict[str, int | bool]:
         return {
@@ -55,6 +79,8 @@ class PlanReport:
             "atoms_moved": self.atoms_moved,
             "max_steps_per_atom": self.max_steps_per_atom,
             "max_pickups_per_atom": self.max_pickups_per_atom,
+            "captures": self.captures,
+            "dragged": self.dragged,
             "target_reached": self.target_reached,
         }
 
@@ -72,36 +98,7 @@ def _check_tones(ops: Operations, i: int, sites: np.ndarray, deltas: np.ndarray,
         raise _fail(ops, i, f"{axis} tone moves more than one site")
 
 
-def replay(ops: Operations, occupancy: np.ndarray, *, trap_source: str) -> PlanReport:
-    """Replay ``ops`` from ``occupancy`` (``bool[ny, nx]``); raises ``InvalidPlan`` at the first broken rule."""
-    ny, nx = occupancy.shape
-    if (ops.ny, ops.nx) != (ny, nx):
-        raise InvalidPlan(f"operations are for a {ops.ny}x{ops.nx} array, occupancy is {ny}x{nx}")
-    ident = np.full((ny, nx), -1, dtype=np.int64)  # atom id in each static trap
-    ident[occupancy] = np.arange(int(occupancy.sum()))
-    n_atoms = int(occupancy.sum())
-    steps = np.zeros(n_atoms, dtype=np.int64)
-    pickups = np.zeros(n_atoms, dtype=np.int64)
-    report = PlanReport(occupancy=occupancy)
-    if trap_source == "aod":
-        _replay_chain(ops, ident, steps)
-        report.batches = len(ops)
-    elif trap_source == "slm":
-        report.batches = _replay_tweezers(ops, ident, steps, pickups)
-    else:
-        raise ValueError(f"trap_source must be 'aod' or 'slm' (got {trap_source!r})")
-    report.occupancy = ident >= 0
-    report.slots = len(ops)
-    report.steps = int(steps.sum())
-    report.atoms_moved = int(np.count_nonzero(steps))
-    report.max_steps_per_atom = int(steps.max(initial=0))
-    report.max_pickups_per_atom = int(pickups.max(initial=0))
-    return report
-
-
-def _replay_chain(ops: Operations, ident: np.ndarray, steps: np.ndarray) -> None:
-    row = ident[0]
-    nx = row.size
+def _check_chain_grammar(ops: Operations, nx: int) -> None:
     for i in range(len(ops)):
         kind = int(ops.kind[i])
         if kind == IDLE:
@@ -121,18 +118,11 @@ def _replay_chain(ops: Operations, ident: np.ndarray, steps: np.ndarray) -> None
         for s, d in move_to.items():
             if move_to.get(d) == s:
                 raise _fail(ops, i, f"tones at sites {s} and {d} cross")
-            if d not in move_to and row[d] >= 0:
-                raise _fail(ops, i, f"the tone from site {s} enters site {d}, which holds an atom")
-        moving_ids = row[src].copy()
-        row[src] = -1
-        row[dst] = moving_ids
-        carried = moving_ids[moving_ids >= 0]
-        steps[carried] += 1
 
 
-def _replay_tweezers(ops: Operations, ident: np.ndarray, steps: np.ndarray, pickups: np.ndarray) -> int:
-    ny, nx = ident.shape
-    held: np.ndarray | None = None  # atom id per tweezer [len(ty), len(tx)], -1 = empty
+def _check_tweezer_grammar(ops: Operations, ny: int, nx: int) -> int:
+    """The slot sequence is extract, shifts, implant with consistent tones; returns the number of batches."""
+    on = False
     ty = tx = np.zeros(0, dtype=np.int64)
     batches = 0
     for i in range(len(ops)):
@@ -141,24 +131,19 @@ def _replay_tweezers(ops: Operations, ident: np.ndarray, steps: np.ndarray, pick
         _check_tones(ops, i, ys, dys, ny, "y")
         _check_tones(ops, i, xs, dxs, nx, "x")
         if kind == IDLE:
-            if held is not None and np.any(held >= 0):
-                raise _fail(ops, i, "an idle slot (silence) while tweezers hold atoms drops them")
-            held = None
+            on = False
             continue
         if kind == EXTRACT:
-            if held is not None:
+            if on:
                 raise _fail(ops, i, "extract while tweezers are still on")
             if np.any(dys) or np.any(dxs):
                 raise _fail(ops, i, "extract tones must not move")
             if ys.size == 0 or xs.size == 0:
                 raise _fail(ops, i, "extract with no tones on one axis")
-            ty, tx = ys, xs
-            held = ident[np.ix_(ty, tx)].copy()
-            ident[np.ix_(ty, tx)] = -1
-            pickups[held[held >= 0]] += 1
+            on, ty, tx = True, ys, xs
             batches += 1
             continue
-        if held is None:
+        if not on:
             raise _fail(ops, i, f"{OpKind(kind).name} with no tweezers on (extract first)")
         if not (np.array_equal(ys, ty) and np.array_equal(xs, tx)):
             raise _fail(ops, i, f"tones listed at rows {ty.tolist()} x cols {tx.tolist()} are where the tweezers are")
@@ -168,53 +153,175 @@ def _replay_tweezers(ops: Operations, ident: np.ndarray, steps: np.ndarray, pick
                 raise _fail(ops, i, "a tweezer leaves the array")
             if np.any(np.diff(ny1) <= 0) or np.any(np.diff(nx1) <= 0):
                 raise _fail(ops, i, "tones cross or merge")
-            moved = (dys[:, None] != 0) | (dxs[None, :] != 0)
-            loaded = held >= 0
-            clash = loaded & moved & (ident[np.ix_(ny1, nx1)] >= 0)
-            if np.any(clash):
-                r, c = np.argwhere(clash)[0]
-                raise _fail(ops, i, f"a loaded tweezer lands on the atom at row {ny1[r]}, col {nx1[c]}")
-            steps[held[loaded & moved]] += 1
             ty, tx = ny1, nx1
         elif kind == IMPLANT:
-            loaded = held >= 0
-            below = ident[np.ix_(ty, tx)]
-            if np.any(loaded & (below >= 0)):
-                raise _fail(ops, i, "implant onto an occupied trap")
-            ident[np.ix_(ty, tx)] = np.where(loaded, held, below)
-            held = None
+            on = False
         else:
             raise _fail(ops, i, f"unknown operation kind {kind}")
-    if held is not None and np.any(held >= 0):
-        raise InvalidPlan("the plan ends with atoms still in the tweezers")
     return batches
+
+
+def _play(
+    ops: Operations, state: mm.MoveState, chain: bool, *, stop_on_capture: bool = False
+) -> tuple[int, np.ndarray]:
+    """Run the move model over all slots (identities on); returns (slot of the first fault or ``len(ops)``, events)."""
+    events = mm.new_events()
+    n = len(ops)
+    at = mm.replay_operations(
+        ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, 0, n, chain,
+        state.static, state.held, state.held_mark, state.ids, state.atom_stats, True, state.arrivals,
+        state.tweezers, state.chain_scratch, state.y_tracks, state.x_tracks, events, True, stop_on_capture,
+    )  # fmt: skip
+    return at, events
+
+
+def _site(flat: int, nx: int) -> str:
+    return f"row {flat // nx}, col {flat % nx}"
+
+
+def replay(ops: Operations, occupancy: np.ndarray, *, trap_source: str) -> PlanReport:
+    """Replay ``ops`` from ``occupancy`` (``bool[ny, nx]``); raises ``InvalidPlan`` at the first broken rule.
+
+    Captures are counted in the report, not rejected here: only ``validate`` knows whether the plan's steps
+    account for them.
+    """
+    ny, nx = occupancy.shape
+    if (ops.ny, ops.nx) != (ny, nx):
+        raise InvalidPlan(f"operations are for a {ops.ny}x{ops.nx} array, occupancy is {ny}x{nx}")
+    if trap_source == "aod":
+        _check_chain_grammar(ops, nx)
+        batches = len(ops)
+    elif trap_source == "slm":
+        batches = _check_tweezer_grammar(ops, ny, nx)
+    else:
+        raise ValueError(f"trap_source must be 'aod' or 'slm' (got {trap_source!r})")
+    chain = trap_source == "aod"
+    state = mm.MoveState(ny, nx)
+    state.load(occupancy)
+    at, ev = _play(ops, state, chain)
+    if at < len(ops):
+        if ev[mm.EV_LOST_COLLISION]:
+            where = _site(int(ev[mm.EV_FIRST_COLLISION]), nx)
+            why = f"two atoms meet at {where}" if chain else f"a loaded tweezer lands on the atom at {where}"
+            raise _fail(ops, at, why)
+        where = _site(int(ev[mm.EV_FIRST_DROP]), nx)
+        if chain:
+            raise _fail(ops, at, f"a moving tone enters {where}, which holds an atom (its own tone fades out under it)")
+        if int(ops.kind[at]) == IDLE:
+            raise _fail(ops, at, "an idle slot (silence) while tweezers hold atoms drops them")
+        raise _fail(ops, at, f"the atom held at {where} is dropped (no tweezer holds it any more)")
+    if state.held.any():
+        raise InvalidPlan("the plan ends with atoms still in the tweezers")
+    stats = state.atom_stats
+    site = np.full(stats.shape[0], -1, dtype=np.int64)
+    flat_id = state.ids[0].ravel()
+    occupied = np.flatnonzero(flat_id >= 0)
+    site[flat_id[occupied]] = occupied
+    return PlanReport(
+        occupancy=state.static.copy(),
+        slots=len(ops),
+        batches=batches,
+        steps=int(ev[mm.EV_STEPS]),
+        atoms_moved=int(np.count_nonzero(stats[:, mm.STAT_STEPS])),
+        max_steps_per_atom=int(stats[:, mm.STAT_STEPS].max(initial=0)),
+        max_pickups_per_atom=int(stats[:, mm.STAT_PICKUPS].max(initial=0)),
+        captures=int(ev[mm.EV_CAPTURED]),
+        dragged=int(ev[mm.EV_DRAGGED]),
+        atom_steps=stats[:, mm.STAT_STEPS].copy(),
+        atom_pickups=stats[:, mm.STAT_PICKUPS].copy(),
+        atom_captures=stats[:, mm.STAT_CAPTURES].copy(),
+        atom_site=site,
+    )
+
+
+def _replay_chain(ops: Operations, ident: np.ndarray, steps: np.ndarray) -> None:
+    """Per-atom replay for callers that number atoms themselves (``server/bench_solvers.py``): moves
+    ``ident`` (atom id per trap, -1 empty) to the final traps and adds each atom's steps to ``steps``."""
+    _replay_ident(ops, ident, steps, np.zeros_like(steps), "aod")
+
+
+def _replay_tweezers(ops: Operations, ident: np.ndarray, steps: np.ndarray, pickups: np.ndarray) -> int:
+    """As ``_replay_chain`` for crossed AODs, also counting pick-ups per atom; returns the number of batches."""
+    return _replay_ident(ops, ident, steps, pickups, "slm")
+
+
+def _replay_ident(ops: Operations, ident: np.ndarray, steps: np.ndarray, pickups: np.ndarray, source: str) -> int:
+    occ = ident >= 0
+    order = ident[occ]  # caller's id of the atom numbered k in row-major order
+    report = replay(ops, occ, trap_source=source)
+    steps[order] += report.atom_steps
+    pickups[order] += report.atom_pickups
+    ident[:] = -1
+    ident.ravel()[report.atom_site] = order
+    return report.batches
+
+
+def _replay_steps_ident(steps: np.ndarray, occupancy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``replay_steps`` following each atom: (final occupancy, steps per atom, final trap per atom)."""
+    nx = occupancy.shape[1]
+    ident = np.full(occupancy.size, -1, dtype=np.int64)
+    n_atoms = int(occupancy.sum())
+    ident[np.flatnonzero(occupancy.ravel())] = np.arange(n_atoms)
+    per_atom = np.zeros(n_atoms, dtype=np.int64)
+    for k, (src, dst) in enumerate(np.asarray(steps).tolist()):
+        if ident[src] < 0 or ident[dst] >= 0:
+            raise InvalidPlan(f"step {k} ({src} -> {dst}): source empty or destination occupied")
+        if abs(src // nx - dst // nx) + abs(src % nx - dst % nx) != 1:
+            raise InvalidPlan(f"step {k} ({src} -> {dst}) is not between neighbouring traps")
+        per_atom[ident[src]] += 1
+        ident[dst] = ident[src]
+        ident[src] = -1
+    site = np.full(n_atoms, -1, dtype=np.int64)
+    occupied = np.flatnonzero(ident >= 0)
+    site[ident[occupied]] = occupied
+    return (ident >= 0).reshape(occupancy.shape), per_atom, site
 
 
 def replay_steps(steps: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
     """Replay one-site steps in order (source occupied, destination an empty neighbour); final occupancy."""
-    grid = occupancy.copy().ravel()
-    nx = occupancy.shape[1]
-    for k, (src, dst) in enumerate(np.asarray(steps).tolist()):
-        if not grid[src] or grid[dst]:
-            raise InvalidPlan(f"step {k} ({src} -> {dst}): source empty or destination occupied")
-        if abs(src // nx - dst // nx) + abs(src % nx - dst % nx) != 1:
-            raise InvalidPlan(f"step {k} ({src} -> {dst}) is not between neighbouring traps")
-        grid[src] = False
-        grid[dst] = True
-    return grid.reshape(occupancy.shape)
+    return _replay_steps_ident(steps, occupancy)[0]
 
 
 def validate(plan: Plan, occupancy: np.ndarray, target: np.ndarray, *, trap_source: str) -> PlanReport:
-    """Replay ``plan`` from ``occupancy``; check it fills ``target`` and that its ``steps`` say the same.
+    """Replay ``plan`` from ``occupancy``; check it fills ``target``, that its ``steps`` move every atom as
+    its slots do, and that every atom a tweezer takes (by an extract or a capture on its way) is one the
+    steps move.
 
     Raises ``InvalidPlan`` with the first broken rule; returns the replay's figures.
     """
     report = replay(plan.operations, occupancy, trap_source=trap_source)
-    after_steps = replay_steps(plan.steps, occupancy)
+    nx = occupancy.shape[1]
+    after_steps, plan_atom_steps, plan_atom_site = _replay_steps_ident(plan.steps, occupancy)
+    start = np.flatnonzero(np.asarray(occupancy).ravel())
+    unaccounted = np.flatnonzero((report.atom_captures > 0) & (plan_atom_steps == 0))
+    if unaccounted.size:
+        state = mm.MoveState(*occupancy.shape)
+        state.load(occupancy)
+        at, ev = _play(plan.operations, state, trap_source == "aod", stop_on_capture=True)
+        raise _fail(
+            plan.operations, at,
+            f"an empty tweezer at full depth arrives over the atom at {_site(int(ev[mm.EV_FIRST_CAPTURE]), nx)} "
+            f"and captures it; {unaccounted.size} atom(s) are disturbed that the plan's steps do not move "
+            f"(first from {_site(int(start[unaccounted[0]]), nx)})",
+        )  # fmt: skip
+    idle = np.flatnonzero((report.atom_pickups > 0) & (plan_atom_steps == 0))
+    if idle.size:
+        raise InvalidPlan(
+            f"the slots pick up {idle.size} atom(s) that the plan's steps never move (each pick-up and implant "
+            f"risks the atom), first the one at {_site(int(start[idle[0]]), nx)}"
+        )
     if not np.array_equal(after_steps, report.occupancy):
         raise InvalidPlan("the plan's one-site steps and its waveform slots leave the atoms in different traps")
     if report.steps != plan.n_steps:
         raise InvalidPlan(f"the slots displace atoms {report.steps} times but the plan lists {plan.n_steps} steps")
+    differ = np.flatnonzero((plan_atom_steps != report.atom_steps) | (plan_atom_site != report.atom_site))
+    if differ.size:
+        a = int(differ[0])
+        raise InvalidPlan(
+            f"the atom from {_site(int(start[a]), nx)}: the slots move it {report.atom_steps[a]} sites to "
+            f"{_site(int(report.atom_site[a]), nx)}, the plan's steps {plan_atom_steps[a]} sites to "
+            f"{_site(int(plan_atom_site[a]), nx)}"
+        )
     report.target_reached = bool(np.all(report.occupancy[target]))
     if not report.target_reached:
         missing = np.argwhere(target & ~report.occupancy)[:5].tolist()

@@ -31,7 +31,11 @@ fit the slot with room for five of them to mean different times: ``window_s <= 0
 
     slot_duration_s * min_spacing_hz >= 5      (10 us slots: spacing >= 0.5 MHz)
 
-``SampleDecoder`` raises ``DecodeConfigError`` at construction when a configuration violates it. Transitions
+``SampleDecoder`` raises ``DecodeConfigError`` at construction when a configuration violates it (compared on
+the configuration's numbers with a relative tolerance; the window is then capped at 0.4 of the slot, so a
+product of exactly 5 whose window would round up by a sample is accepted). This is the simulator's limit; the
+physical one, which ``SystemConfig`` checks for every configuration, is ``engine.aod_limits.PHYSICAL_MIN_SLOT_SPACING``
+(a tone moved one site in one slot must be resolvable from its neighbour within the slot: one beat period). Transitions
 must also linger near the half-site point for a good part of a window: min-jerk, and tanh/erf up to a
 sharpness of about 8 (at 1 MHz / 10 us) decode; much sharper jumps look like a hand-off at mid-slot.
 
@@ -58,11 +62,13 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from engine.aod_limits import PHYSICAL_MIN_SLOT_SPACING
 from engine.config import SystemConfig
 from engine.tones import check_below_nyquist, tones_of
 
 __all__ = [
     "FULL_FRACTION",
+    "SIMULATOR_MIN_SLOT_SPACING",
     "DecodeConfigError",
     "DecodedSegment",
     "SampleDecoder",
@@ -79,6 +85,9 @@ MOVER_FRACTION = 0.4
 REPORT_FRACTION = 0.3
 #: Longest window as a fraction of the slot (see the resolution condition above).
 MAX_WINDOW_FRACTION = 0.4
+#: The decoder's resolution condition, ``slot_duration_s * spacing_hz >= 2 / MAX_WINDOW_FRACTION``: a limit
+#: of this simulator (it follows a move through five windows of a slot), not of the AOD.
+SIMULATOR_MIN_SLOT_SPACING = 2 / MAX_WINDOW_FRACTION
 
 
 #: Memory of each axis's cache of decoded slots (entries: a power of two, at most 8192), and its ways per set.
@@ -230,15 +239,23 @@ class SampleDecoder:
             axes.append(_AxisModel(*site_tones(config, "y"), self.sample_rate_hz, "y"))
         self._axes = axes
         min_gap = min(a.min_gap_hz for a in axes)
-        self.window_samples = int(np.ceil(self.sample_rate_hz / min_gap - 1e-9))
-        if self.window_samples > MAX_WINDOW_FRACTION * self.slot_samples:
-            spacing = 2 * min_gap
+        spacing = 2 * min_gap
+        # the condition is stated on the configuration's own numbers, with a relative tolerance: 10 us x 0.5 MHz
+        # is 5 even where the product rounds to 4.999999999 or the window rounds up to a whole sample
+        if config.waveforms.slot_duration_s * spacing < SIMULATOR_MIN_SLOT_SPACING * (1 - 1e-9):
             raise DecodeConfigError(
-                f"the simulated AWG cannot resolve tones {spacing / 1e6:g} MHz apart in "
+                f"the simulated AWG's decoder cannot resolve tones {spacing / 1e6:g} MHz apart in "
                 f"{config.waveforms.slot_duration_s * 1e6:g} us slots: it needs slot_duration_s * spacing_hz >= "
-                f"{2 / MAX_WINDOW_FRACTION:g} (got {config.waveforms.slot_duration_s * spacing:g}); widen the tone "
-                "spacing or lengthen waveforms.slot_duration_s"
+                f"{SIMULATOR_MIN_SLOT_SPACING:g} (got {config.waveforms.slot_duration_s * spacing:.6g}). This is a "
+                "limit of the simulated lab (five decoding windows per slot), not of an AOD, which needs >= "
+                f"{PHYSICAL_MIN_SLOT_SPACING:g}; widen the tone spacing or lengthen waveforms.slot_duration_s"
             )
+        # one beat period of the half-site grid, but never more than the slot leaves to each window (at the limit
+        # the two differ by the rounding of a sample, and least squares still separates the grid)
+        self.window_samples = min(
+            int(np.ceil(self.sample_rate_hz / min_gap - 1e-9)),
+            int(np.floor(MAX_WINDOW_FRACTION * self.slot_samples + 1e-9)),
+        )
         width = transition_width_fraction(config.waveforms.shape, config.waveforms.shape_sharpness)
         if width < MIN_TRANSITION_PER_WINDOW * self.window_samples / self.slot_samples:
             raise DecodeConfigError(

@@ -136,22 +136,31 @@ def segment_levels_reference(samples: np.ndarray, slot_samples: int) -> tuple[np
 
 @njit(cache=True, nogil=True)
 def _segment_levels(samples: np.ndarray, slot_samples: int, peak: np.ndarray, mean_square: np.ndarray) -> None:
-    """The largest |count| per channel and the largest mean square of a slot of ``int16[n, ch]`` samples (a
-    segment shorter than a slot counts as one slot); scalar accumulators, one channel at a time."""
+    """The largest |count| per channel (every sample) and the largest mean square of a whole slot (a segment
+    shorter than a slot counts as one slot) of ``int16[n, ch]`` samples; scalar accumulators, one channel at a
+    time, in int64 (|-32768| does not fit an int16)."""
     n, n_ch = samples.shape
     length = min(slot_samples, n)
+    n_whole = n // length * length if length > 0 else 0
     for c in range(n_ch):
         col = samples[:, c]
-        top = 0
-        best = 0
-        for start in range(0, n - length + 1, max(length, 1)):
-            acc = 0
+        top = np.int64(0)
+        best = np.int64(0)
+        for start in range(0, n_whole, max(length, 1)):
+            acc = np.int64(0)
             for i in range(start, start + length):
-                v = int(col[i])
+                v = np.int64(col[i])
                 acc += v * v
-                if abs(v) > top:
-                    top = abs(v)
-            best = max(best, acc)
+                a = -v if v < 0 else v
+                if a > top:
+                    top = a
+            if acc > best:
+                best = acc
+        for i in range(n_whole, n):
+            v = np.int64(col[i])
+            a = -v if v < 0 else v
+            if a > top:
+                top = a
         peak[c] = float(top)
         mean_square[c] = best / length if length > 0 else 0.0
 

@@ -570,6 +570,10 @@ class SystemConfig(_Model):
             tones: ToneAxisConfig = getattr(self.array, axis)
             if tones.csv is not None:
                 continue  # checked when the CSV is loaded
+            if self._n_tones(axis) > 1:  # before the whole-cycles rule, which a finer spacing also breaks
+                problem = resolution_problem(wf.slot_duration_s, tones.spacing_hz, where=f"array.{axis}.spacing_hz")
+                if problem is not None:
+                    raise ValueError(problem)
             for name in ("start_hz", "spacing_hz"):
                 cycles = getattr(tones, name) / grid_hz
                 if abs(cycles - round(cycles)) > 1e-6:
@@ -602,14 +606,10 @@ class SystemConfig(_Model):
         return self.array.nx if axis == "x_tones" else self.array.ny
 
     def _comb_problems(self, axis: str, tones: ToneAxisConfig, top_hz: float) -> list[str]:
-        """What the AOD, the DAC and the channel's RF limits refuse in an evenly spaced comb (see
-        ``engine.aod_limits``): the physical limits only (the simulated lab's decoder checks its own)."""
+        """What the AOD's band, the DAC's images and the channel's RF limits refuse in an evenly spaced comb (see
+        ``engine.aod_limits``); physical limits only (the simulated lab's decoder checks its own)."""
         n, rf, where = self._n_tones(axis), tones.rf, f"array.{axis}"
         problems = []
-        if n > 1:
-            problem = resolution_problem(self.waveforms.slot_duration_s, tones.spacing_hz, where=f"{where}.spacing_hz")
-            if problem is not None:
-                problems.append(problem)
         if tones.aod_centre_hz is not None and tones.aod_bandwidth_hz is not None:
             problem = band_problem(tones.start_hz, top_hz, tones.aod_centre_hz, tones.aod_bandwidth_hz,
                                    self.waveforms.sample_rate_hz, where=where)

@@ -24,7 +24,6 @@ from engine.aod_limits import (
     segment_levels_reference,
     w_to_dbm,
 )
-from engine.config import config_from_dict
 from engine.devices import DeviceError
 from engine.errors import ConfigError
 

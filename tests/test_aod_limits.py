@@ -14,6 +14,7 @@ from drivers.sim.awg import SimAWG
 from drivers.sim.clock import SimClock
 from drivers.sim.decode import DecodeConfigError, SampleDecoder
 from drivers.sim.world import World
+from drivers.spectrum import SpectrumAWG
 from engine.aod_limits import (
     RFLimitError,
     SegmentGuard,
@@ -24,8 +25,10 @@ from engine.aod_limits import (
     segment_levels_reference,
     w_to_dbm,
 )
+from engine.config import AWGConfig, DevicesConfig
 from engine.devices import DeviceError
 from engine.errors import ConfigError
+from tests.fake_spcm import C, make_fake_spcm
 
 BAND = {"aod_centre_hz": 100e6, "aod_bandwidth_hz": 70e6}  # 65..135 MHz
 
@@ -157,3 +160,39 @@ def test_the_simulated_awg_refuses_a_segment_over_the_limits_and_plays_one_withi
                 awg.write_segment(0, samples)
         else:
             awg.write_segment(0, samples)
+
+
+# --- the Spectrum adapter over the fake card -----------------------------------------------------------------
+
+def _spectrum(settings: dict, rf_guard: SegmentGuard | None = None, **card):
+    mod = make_fake_spcm(**card)
+    dev = SpectrumAWG(DevicesConfig.SpectrumSettings(**settings), spcm_module=mod, rf_guard=rf_guard)
+    dev.configure(AWGConfig(n_segments=16, n_steps=64), n_channels=1, sample_rate_hz=624e6)
+    return dev, mod.fake.cards["/dev/spcm0"]
+
+
+def test_the_spectrum_adapter_sets_the_configured_output_range_and_never_a_larger_one() -> None:
+    _, card = _spectrum({"amplitude_mv": 300})
+    assert card.registers[C.SPC_AMP0] == 300
+    # a card whose range steps are 50 mV would make 300 mV out of 280 mV: refused, output off
+    with pytest.raises(DeviceError, match="came out at 300 mV, above the configured 280 mV"):
+        _spectrum({"amplitude_mv": 280}, amp_quantum_mv=50)
+
+
+def test_the_spectrum_adapter_refuses_a_segment_over_the_rf_limits() -> None:
+    cfg = chain_config(32)
+    segment = _full_comb_samples(cfg)
+    assert segment.shape[0] % 32 == 0
+    peak = np.abs(segment.astype(np.int64)).max() / 32767.0
+    power_w = comb_power_w(np.full(32, 0.015), cfg.full_scale_v(0), 50.0)
+    louder = (segment.astype(np.float64) * 1.1).astype(np.int16)  # a render that went wrong: 0.8 dB too loud
+    for rf, sent, match in (
+        ({"max_peak_amplitude": math.floor(100 * peak) / 100}, segment, "max_peak_amplitude"),
+        ({"max_rf_power_dbm": w_to_dbm(power_w) + 0.1}, louder, "dBm"),
+    ):
+        limits = chain_config(32, array={"x_tones": {"rf": rf}}).channel_limits()
+        dev, card = _spectrum({}, SegmentGuard(limits, cfg.waveforms.slot_samples))
+        with pytest.raises(DeviceError, match=f"refused by the RF limits.*{match}"):
+            dev.write_segment(0, np.ascontiguousarray(sent))
+    dev, _ = _spectrum({}, SegmentGuard(cfg.channel_limits(), cfg.waveforms.slot_samples))
+    dev.write_segment(0, np.ascontiguousarray(segment))  # within the limits: uploaded

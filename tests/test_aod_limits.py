@@ -28,6 +28,9 @@ from engine.aod_limits import (
 from engine.config import AWGConfig, DevicesConfig
 from engine.devices import DeviceError
 from engine.errors import ConfigError
+from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations
+from engine.streaming import Streamer
+from engine.waveforms import WaveformBank
 from tests.fake_spcm import C, make_fake_spcm
 
 BAND = {"aod_centre_hz": 100e6, "aod_bandwidth_hz": 70e6}  # 65..135 MHz
@@ -196,3 +199,21 @@ def test_the_spectrum_adapter_refuses_a_segment_over_the_rf_limits() -> None:
             dev.write_segment(0, np.ascontiguousarray(sent))
     dev, _ = _spectrum({}, SegmentGuard(cfg.channel_limits(), cfg.waveforms.slot_samples))
     dev.write_segment(0, np.ascontiguousarray(segment))  # within the limits: uploaded
+
+
+def test_the_streamer_refuses_a_rendered_segment_over_the_limits_before_uploading_it() -> None:
+    cfg = grid_config(8, 6)
+    ops = Operations(nx=8, ny=6)
+    ops.append(EXTRACT, [0, 1, 2], [0, 1, 2, 3])
+    ops.append(SHIFT, [0, 1, 2], [0, 1, 2, 3], [1, 1, 1], [1, 1, 1, 1])
+    ops.append(IMPLANT, [1, 2, 3], [1, 2, 3, 4])
+    bank = WaveformBank(cfg)
+    peak = np.abs(bank.render_slots(ops).astype(np.int64)).max(axis=0) / 32767.0  # per channel
+    strict = grid_config(8, 6, array={"y_tones": {"rf": {"max_peak_amplitude": float(peak[1]) * 0.9}}})
+    clock = SimClock("simulated")
+    awg = SimAWG(World(cfg, clock=clock, lossless=True), clock, cfg)  # a card that would play it
+    with pytest.raises(RFLimitError, match="channel 1: a sample reaches .* above array.y_tones.rf.max_peak_amplitude"):
+        Streamer(strict, bank, awg, clock).stream(ops)
+    assert awg.uploads == 0
+    guard = SegmentGuard(cfg.channel_limits(), cfg.waveforms.slot_samples)
+    assert guard.problem(bank.render_slots(ops)) is None  # within the configured limits the same render passes

@@ -257,13 +257,14 @@ class SampleDecoder:
             int(np.floor(MAX_WINDOW_FRACTION * self.slot_samples + 1e-9)),
         )
         width = transition_width_fraction(config.waveforms.shape, config.waveforms.shape_sharpness)
-        if width < MIN_TRANSITION_PER_WINDOW * self.window_samples / self.slot_samples:
+        window_fraction = self.window_samples / self.slot_samples
+        if width < MIN_TRANSITION_PER_WINDOW * window_fraction:
             raise DecodeConfigError(
-                f"waveforms.shape '{config.waveforms.shape}' with shape_sharpness {config.waveforms.shape_sharpness:g} "
-                f"moves a tone in {width:.2f} of a slot (10-90 %), faster than the simulated AWG's decoding window "
-                f"({self.window_samples / self.slot_samples:.2f} of a slot) can follow; lower shape_sharpness to at most "
-                f"{_max_sharpness(config.waveforms.shape, self.window_samples / self.slot_samples):.1f}, use min-jerk, or "
-                "widen the tone spacing"
+                f"waveforms.shape '{config.waveforms.shape}' with shape_sharpness "
+                f"{config.waveforms.shape_sharpness:g} moves a tone in {width:.2f} of a slot (10-90 %), faster than "
+                f"the simulated AWG's decoding window ({window_fraction:.2f} of a slot) can follow; lower "
+                f"shape_sharpness to at most {_max_sharpness(config.waveforms.shape, window_fraction):.1f}, use "
+                "min-jerk, or widen the tone spacing"
             )
         n, w = self.slot_samples, self.window_samples
         self.window_offsets = np.array(
@@ -273,7 +274,7 @@ class SampleDecoder:
         self._gather = self.window_offsets[:, None] + np.arange(w, dtype=np.int64)[None, :]  # [W, L]
         self._kernel_args = [
             _KernelArgs.build(p, (a.ref_amp * self.full_scale).astype(np.float32), a.n_sites)
-            for p, a in zip(self._proj, axes)
+            for p, a in zip(self._proj, axes, strict=True)
         ]
         # the cache's hash weights (``_hash_slots``): fixed random 32-bit numbers, one pair per sample of a slot
         self._hash_weights = np.random.default_rng(0x51075).integers(0, 1 << 32, (2, n), dtype=np.uint64)
@@ -307,7 +308,7 @@ class SampleDecoder:
         return amp.reshape(n_slots, len(WINDOW_CENTRES), q)
 
     def decode(self, samples: np.ndarray) -> DecodedSegment:
-        """Tracks of every whole slot in ``samples`` (``int16[n, n_channels]``; a tail shorter than a slot is ignored)."""
+        """Tracks of every whole slot in ``samples`` (``int16[n, n_channels]``; a shorter tail is ignored)."""
         if samples.ndim != 2 or samples.shape[1] < self.n_axes:
             raise ValueError(f"expected int16[n, >= {self.n_axes}] samples, got shape {samples.shape}")
         if samples.dtype != np.int16:
@@ -330,7 +331,8 @@ class SampleDecoder:
             )  # fmt: skip
             tracks.append(out)
             counts.append(cnt)
-        return _segment(n_slots, tracks, counts, all(_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts)))
+        stationary = all(_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts, strict=True))
+        return _segment(n_slots, tracks, counts, stationary)
 
     def decode_reference(self, samples: np.ndarray) -> DecodedSegment:
         """``decode`` the plain way: every amplitude of every window by one matrix product, then classify."""
@@ -347,7 +349,8 @@ class SampleDecoder:
                 _classify(self.amplitudes(samples, axis), model.n_sites, MOVER_FRACTION, REPORT_FRACTION, out, cnt)
             tracks.append(out)
             counts.append(cnt)
-        return _segment(n_slots, tracks, counts, all(_is_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts)))
+        stationary = all(_is_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts, strict=True))
+        return _segment(n_slots, tracks, counts, stationary)
 
 
 def _segment(n_slots: int, tracks: list[np.ndarray], counts: list[np.ndarray], stationary: bool) -> DecodedSegment:

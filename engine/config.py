@@ -38,12 +38,12 @@ __all__ = [
     "ImagingConfig",
     "LoopConfig",
     "MoveLossConfig",
+    "RFLimitsConfig",
     "SimConfig",
     "SimImagingConfig",
     "SolverConfig",
     "SystemConfig",
     "TargetConfig",
-    "RFLimitsConfig",
     "ToneAxisConfig",
     "WaveformConfig",
     "deep_merge",
@@ -67,8 +67,9 @@ class RFLimitsConfig(_Model):
     a full-scale sample at ``devices.spectrum.amplitude_mv`` (the simulated AWG models the same output)."""
 
     max_peak_amplitude: Fraction = Field(default=1.0, description="largest |sample| as a fraction of full scale")
-    max_summed_amplitude: Annotated[float, Field(gt=0, le=1024)] = Field(
-        default=1.0, description="largest sum of the static tone amplitudes (bounds the peak whatever the phases)"
+    max_summed_amplitude: Annotated[float, Field(gt=0, le=1)] = Field(
+        default=1.0, description="largest sum of the static tone amplitudes (bounds the peak whatever the phases; "
+        "at most 1, where the AWG would clip)"
     )
     max_rf_power_dbm: Annotated[float, Field(ge=-100, le=60)] | None = Field(
         default=None, description="largest mean RF power into the amplifier in dBm (or give max_rf_power_mw)"
@@ -621,8 +622,8 @@ class SystemConfig(_Model):
         if summed > rf.max_summed_amplitude * (1 + 1e-9):
             problems.append(
                 f"{where}.amplitude = {tones.amplitude:g} x {n} tones = {summed:g} of full scale, above "
-                f"{where}.rf.max_summed_amplitude = {rf.max_summed_amplitude:g} (above 1 the AWG would clip when "
-                f"every tone is on); use at most {rf.max_summed_amplitude / n:.4g}"
+                f"{where}.rf.max_summed_amplitude = {rf.max_summed_amplitude:g} (1: the AWG would clip when every tone "
+                f"is on); use at most {rf.max_summed_amplitude / n:.4g}"
             )
         if rf.max_power_w is not None:
             full_scale_v = self.full_scale_v(0 if axis == "x_tones" else 1)

@@ -17,6 +17,7 @@ import time
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
+from engine.aod_limits import SegmentGuard
 from engine.config import DevicesConfig, SystemConfig
 from engine.devices import Camera, DeviceError, DeviceSet, SequenceAWG
 
@@ -73,7 +74,8 @@ def open_devices(
         if d.awg == "spectrum":
             from drivers.spectrum import SpectrumAWG
 
-            spectrum = SpectrumAWG(d.spectrum, spcm_module=spcm_module)
+            spectrum = SpectrumAWG(d.spectrum, spcm_module=spcm_module,
+                                   rf_guard=SegmentGuard(config.channel_limits(), config.waveforms.slot_samples))
             spectrum.open()
             opened.append(spectrum)
             awg = spectrum

@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from engine import card_rules
+from engine.aod_limits import SegmentGuard
 from engine.config import AWGConfig, DevicesConfig
 from engine.devices import DeviceError, StepInfo
 
@@ -104,8 +105,12 @@ class SpectrumAWG:
     a missing driver shows up when the devices are built, not at the first shot.
     """
 
-    def __init__(self, settings: SpectrumSettings | None = None, *, spcm_module: ModuleType | None = None) -> None:
+    def __init__(
+        self, settings: SpectrumSettings | None = None, *, spcm_module: ModuleType | None = None,
+        rf_guard: SegmentGuard | None = None,
+    ) -> None:
         self.settings = settings if settings is not None else SpectrumSettings()
+        self.rf_guard = rf_guard  # the channels' RF limits, checked on every upload (None: the card's range only)
         self._spcm = spcm_module
         self._card: Any = None
         self._running = False
@@ -259,6 +264,14 @@ class SpectrumAWG:
             for ch in range(n_channels):
                 card.set_i(getattr(spcm, f"SPC_ENABLEOUT{ch}"), 1)
                 card.set_i(getattr(spcm, f"SPC_AMP{ch}"), int(amps[ch]))
+                actual_mv = int(card.get_i(getattr(spcm, f"SPC_AMP{ch}")))
+                if actual_mv > int(amps[ch]):  # the card rounds to its own steps: never above the configuration
+                    card.set_i(getattr(spcm, f"SPC_ENABLEOUT{ch}"), 0)
+                    raise DeviceError(
+                        f"Spectrum AWG: channel {ch}'s output range came out at {actual_mv} mV, above the configured "
+                        f"{amps[ch]} mV (devices.spectrum.amplitude_mv); the RF limits assume the configured range, so "
+                        "the output stays off: configure a range the card sets exactly"
+                    )
                 card.set_i(getattr(spcm, f"SPC_CH{ch}_STOPLEVEL"), stop_level)
             if s.external_reference_hz is not None:
                 card.set_i(spcm.SPC_CLOCKMODE, spcm.SPC_CM_EXTREFCLOCK)
@@ -343,6 +356,9 @@ class SpectrumAWG:
             )
         if not samples.flags.c_contiguous:
             raise DeviceError(f"Spectrum AWG: segment {index}: samples must be C-contiguous (the DMA reads them in place)")
+        problem = None if self.rf_guard is None else self.rf_guard.problem(samples)
+        if problem is not None:
+            raise DeviceError(f"Spectrum AWG: segment {index} refused by the RF limits: {problem}")
         pointer = self._dma_pointer(samples)
         card = self._card
         try:

@@ -17,9 +17,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from engine.aod_limits import ChannelLimits, band_problem, comb_power_w, dbm_to_w, resolution_problem, w_to_dbm
 from engine.card_rules import slot_length_problem
 from engine.errors import ConfigError
 from engine.targets import build_target
@@ -36,6 +38,7 @@ __all__ = [
     "ImagingConfig",
     "LoopConfig",
     "MoveLossConfig",
+    "RFLimitsConfig",
     "SimConfig",
     "SimImagingConfig",
     "SolverConfig",
@@ -56,6 +59,40 @@ class _Model(BaseModel):
 Fraction = Annotated[float, Field(ge=0, le=1)]
 #: A pixel position or step on the camera (the largest sensors are a few thousand pixels across).
 PixelCoordinate = Annotated[float, Field(ge=-1e5, le=1e5)]
+
+
+class RFLimitsConfig(_Model):
+    """RF limits of one AWG channel (the amplifier and AOD it drives), checked when a configuration is applied
+    and on every segment before upload (``engine.aod_limits``). Power is the mean power into ``load_ohm`` with
+    a full-scale sample at ``devices.spectrum.amplitude_mv`` (the simulated AWG models the same output)."""
+
+    max_peak_amplitude: Fraction = Field(default=1.0, description="largest |sample| as a fraction of full scale")
+    max_summed_amplitude: Annotated[float, Field(gt=0, le=1)] = Field(
+        default=1.0, description="largest sum of the static tone amplitudes (bounds the peak whatever the phases; "
+        "at most 1, where the AWG would clip)"
+    )
+    max_rf_power_dbm: Annotated[float, Field(ge=-100, le=60)] | None = Field(
+        default=None, description="largest mean RF power into the amplifier in dBm (or give max_rf_power_mw)"
+    )
+    max_rf_power_mw: Annotated[float, Field(gt=0, le=1e6)] | None = Field(
+        default=None, description="largest mean RF power into the amplifier in mW (or give max_rf_power_dbm)"
+    )
+    max_tones: Annotated[int, Field(ge=1, le=4096)] | None = Field(
+        default=None, description="most tones on the channel"
+    )
+    load_ohm: Annotated[float, Field(gt=0, le=1e6)] = Field(default=50.0, description="the amplifier's input impedance")
+
+    @model_validator(mode="after")
+    def _one_power_unit(self) -> RFLimitsConfig:
+        if self.max_rf_power_dbm is not None and self.max_rf_power_mw is not None:
+            raise ValueError("give the RF power limit once: max_rf_power_dbm or max_rf_power_mw, not both")
+        return self
+
+    @property
+    def max_power_w(self) -> float | None:
+        if self.max_rf_power_dbm is not None:
+            return dbm_to_w(self.max_rf_power_dbm)
+        return None if self.max_rf_power_mw is None else 1e-3 * self.max_rf_power_mw
 
 
 class ToneAxisConfig(_Model):
@@ -80,6 +117,20 @@ class ToneAxisConfig(_Model):
     csv: str | None = Field(
         default=None, max_length=4096, description="path to an alpha,nu,phi CSV; overrides the comb"
     )
+    aod_centre_hz: Annotated[float, Field(gt=0, le=10e9)] | None = Field(
+        default=None, description="the AOD's centre frequency; with aod_bandwidth_hz the comb must lie in its band "
+        "and the DAC's images (sample rate - tone) outside it; null: the band is not checked"
+    )
+    aod_bandwidth_hz: Annotated[float, Field(gt=0, le=10e9)] | None = Field(
+        default=None, description="the AOD's RF bandwidth (full width) around aod_centre_hz"
+    )
+    rf: RFLimitsConfig = RFLimitsConfig()
+
+    @model_validator(mode="after")
+    def _band_complete(self) -> ToneAxisConfig:
+        if (self.aod_centre_hz is None) != (self.aod_bandwidth_hz is None):
+            raise ValueError("give the AOD's band as both aod_centre_hz and aod_bandwidth_hz, or neither")
+        return self
 
 
 class ArrayConfig(_Model):
@@ -512,8 +563,7 @@ class SystemConfig(_Model):
                 f"(got {wf.sample_rate_hz * wf.slot_duration_s:g})"
             )
         # every device, simulated or not, refuses what the card would refuse at its first upload
-        n_channels = 1 if self.array.trap_source == "aod" else 2
-        problem = slot_length_problem(wf.sample_rate_hz, wf.slot_duration_s, n_channels)
+        problem = slot_length_problem(wf.sample_rate_hz, wf.slot_duration_s, self.n_channels)
         if problem is not None:
             raise ValueError(problem)
         grid_hz = 1.0 / wf.slot_duration_s
@@ -521,6 +571,10 @@ class SystemConfig(_Model):
             tones: ToneAxisConfig = getattr(self.array, axis)
             if tones.csv is not None:
                 continue  # checked when the CSV is loaded
+            if self._n_tones(axis) > 1:  # before the whole-cycles rule, which a finer spacing also breaks
+                problem = resolution_problem(wf.slot_duration_s, tones.spacing_hz, where=f"array.{axis}.spacing_hz")
+                if problem is not None:
+                    raise ValueError(problem)
             for name in ("start_hz", "spacing_hz"):
                 cycles = getattr(tones, name) / grid_hz
                 if abs(cycles - round(cycles)) > 1e-6:
@@ -528,15 +582,11 @@ class SystemConfig(_Model):
                         f"array.{axis}.{name} = {getattr(tones, name):g} Hz must be a multiple of "
                         f"1/slot_duration_s = {grid_hz:g} Hz so static tones stay phase-continuous"
                     )
-            if tones.amplitude * self._n_tones(axis) > 1.0:
-                raise ValueError(
-                    f"array.{axis}.amplitude = {tones.amplitude:g} x {self._n_tones(axis)} tones = "
-                    f"{tones.amplitude * self._n_tones(axis):g} of full scale: the AWG would clip when every tone "
-                    f"is on; use at most {1.0 / self._n_tones(axis):.4g}"
-                )
             top = tones.start_hz + tones.spacing_hz * (self._n_tones(axis) - 1)
             check_below_nyquist(tones.start_hz, top, wf.sample_rate_hz, where=f"array.{axis}", error=ValueError,
                                 fix="lower start_hz/spacing_hz or raise waveforms.sample_rate_hz")
+            for problem in self._comb_problems(axis, tones, top):
+                raise ValueError(problem)
         cam = self.camera
         for r, c in ((0, 0), (self.array.ny - 1, 0), (0, self.array.nx - 1), (self.array.ny - 1, self.array.nx - 1)):
             x, y = cam.trap_pixel_xy(r, c)
@@ -555,6 +605,57 @@ class SystemConfig(_Model):
 
     def _n_tones(self, axis: str) -> int:
         return self.array.nx if axis == "x_tones" else self.array.ny
+
+    def _comb_problems(self, axis: str, tones: ToneAxisConfig, top_hz: float) -> list[str]:
+        """What the AOD's band, the DAC's images and the channel's RF limits refuse in an evenly spaced comb (see
+        ``engine.aod_limits``); physical limits only (the simulated lab's decoder checks its own)."""
+        n, rf, where = self._n_tones(axis), tones.rf, f"array.{axis}"
+        problems = []
+        if tones.aod_centre_hz is not None and tones.aod_bandwidth_hz is not None:
+            problem = band_problem(tones.start_hz, top_hz, tones.aod_centre_hz, tones.aod_bandwidth_hz,
+                                   self.waveforms.sample_rate_hz, where=where)
+            if problem is not None:
+                problems.append(problem)
+        if rf.max_tones is not None and n > rf.max_tones:
+            problems.append(f"{where}: {n} tones, above {where}.rf.max_tones = {rf.max_tones}")
+        summed = tones.amplitude * n
+        if summed > rf.max_summed_amplitude * (1 + 1e-9):
+            problems.append(
+                f"{where}.amplitude = {tones.amplitude:g} x {n} tones = {summed:g} of full scale, above "
+                f"{where}.rf.max_summed_amplitude = {rf.max_summed_amplitude:g} (1: the AWG would clip when every tone "
+                f"is on); use at most {rf.max_summed_amplitude / n:.4g}"
+            )
+        if rf.max_power_w is not None:
+            full_scale_v = self.full_scale_v(0 if axis == "x_tones" else 1)
+            power_w = comb_power_w(np.full(n, tones.amplitude), full_scale_v, rf.load_ohm)
+            if power_w > rf.max_power_w * (1 + 1e-9):
+                problems.append(
+                    f"{where}: {n} tones of amplitude {tones.amplitude:g} at a full scale of {full_scale_v * 1e3:g} mV "
+                    f"deliver {w_to_dbm(power_w):.2f} dBm ({power_w * 1e3:.4g} mW) into {rf.load_ohm:g} ohm, above "
+                    f"{where}.rf's limit of {w_to_dbm(rf.max_power_w):.2f} dBm; lower the amplitude or "
+                    "devices.spectrum.amplitude_mv"
+                )
+        return problems
+
+    @property
+    def n_channels(self) -> int:
+        """AWG channels in use: x, and y for crossed AODs."""
+        return 1 if self.array.trap_source == "aod" else 2
+
+    def full_scale_v(self, channel: int) -> float:
+        """Peak volts at the load of a full-scale sample on ``channel``: the card's output range."""
+        amps = self.devices.spectrum.amplitude_mv
+        mv = amps[min(channel, len(amps) - 1)] if isinstance(amps, list) else amps
+        return 1e-3 * mv
+
+    def channel_limits(self, full_scale_counts: float = 32767.0) -> list[ChannelLimits]:
+        """Each channel's limits for the per-segment check (``engine.aod_limits.SegmentGuard``)."""
+        out = []
+        for channel, axis in enumerate(("x_tones", "y_tones")[: self.n_channels]):
+            rf = getattr(self.array, axis).rf
+            out.append(ChannelLimits(channel, f"array.{axis}.rf", full_scale_counts, self.full_scale_v(channel),
+                                     rf.load_ohm, rf.max_peak_amplitude, rf.max_power_w))
+        return out
 
     def digest(self) -> str:
         """A short stable hash of the configuration, stored with every shot."""

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from engine.aod_limits import SegmentGuard
 from engine.card_rules import page_aligned_zeros
 from engine.config import SystemConfig
 from engine.devices import Clock, SequenceAWG, StepInfo
@@ -126,6 +127,7 @@ class Streamer:
         self._short_buf = page_aligned_zeros((2 * self.slots_per_segment * slot, ch), np.int16)
         self._failsafe_buf = page_aligned_zeros((slot, ch), np.int16)
         self._keys = np.zeros(bank.max_keys(2 * self.slots_per_segment), dtype=np.int64)
+        self._rf_guard = SegmentGuard(config.channel_limits(), slot)
         # idle + K control + K failsafe + the short-path segment, at their largest
         total = (
             self._failsafe_buf.nbytes
@@ -204,6 +206,7 @@ class Streamer:
         if timer is not None:
             timer.lap("IV.lookup")
         self.bank.render(ops, first, count, out)
+        self._rf_guard.check(out[: count * self.bank.slot_samples])  # before any upload: refuse, saying why
         if timer is not None:
             timer.lap("IV.render")
 

@@ -280,6 +280,7 @@ class CardState:
     serial: int = 12345
     demo: bool = False
     rate_quantum_hz: int = 1  # the card's sample-rate resolution; the fake rounds to it
+    amp_quantum_mv: int = 1  # the card's output-range resolution; the fake rounds up to it
     auto_advance: bool = True
     passes_per_dma: int = 0  # passes the card plays while an upload runs (a slow host / a fast card)
     registers: dict[int, int] = field(default_factory=dict)
@@ -339,6 +340,8 @@ class CardState:
             return self.refuse(C.ERR_VALUE, reg, value, f"CHENABLE {value:#x}: the card enables 1, 2 or 4 channels")
         if reg == C.SPC_SAMPLERATE:
             value = int(round(value / self.rate_quantum_hz)) * self.rate_quantum_hz
+        if reg in (C.SPC_AMP0, C.SPC_AMP1, C.SPC_AMP2, C.SPC_AMP3):
+            value = -(-value // self.amp_quantum_mv) * self.amp_quantum_mv
         if reg in _X_MODE:
             self._xmodes_pending[_X_MODE[reg]] = value
         if reg == C.SPCM_XX_ASYNCIO:

@@ -36,6 +36,7 @@ import numpy as np
 from drivers.sim.decode import DecodedSegment, SampleDecoder
 from drivers.sim.world import World
 from engine import card_rules
+from engine.aod_limits import SegmentGuard
 from engine.config import AWGConfig, SystemConfig
 from engine.devices import Clock, DeviceError, StepInfo
 
@@ -125,6 +126,10 @@ class SimAWG:
                 )
             except ValueError as err:
                 raise DeviceError(f"sim AWG: cannot configure: {err}") from None
+            # the RF limits of the configured channels, on every upload (the engine checks too; a device that
+            # plays whatever it is sent would let a bug in the engine reach the amplifier)
+            limits = self.system.channel_limits(self.full_scale)[:n_channels]
+            self._rf_guard = SegmentGuard(limits, decoder.slot_samples)
             self.awg_config = config
             self._n_channels = int(n_channels)
             self._sample_rate_hz = float(sample_rate_hz)
@@ -214,6 +219,9 @@ class SimAWG:
         problem = card_rules.segment_length_problem(samples.shape[0], self._n_channels)
         if problem is not None:  # the card's rules (engine/card_rules.py): refuse what the card refuses
             raise DeviceError(f"sim AWG: segment {index}: {problem}; the Spectrum card would refuse it")
+        problem = self._rf_guard.problem(samples)
+        if problem is not None:
+            raise DeviceError(f"sim AWG: segment {index} refused by the RF limits: {problem}")
         if self._running and self._pass_segment == index:
             raise DeviceError(f"sim AWG: segment {index} is playing right now (step {self._step}); it cannot be written")
         used = sum(s.data.nbytes for i, s in enumerate(self._latest_segments()) if s is not None and i != index)

@@ -31,7 +31,11 @@ fit the slot with room for five of them to mean different times: ``window_s <= 0
 
     slot_duration_s * min_spacing_hz >= 5      (10 us slots: spacing >= 0.5 MHz)
 
-``SampleDecoder`` raises ``DecodeConfigError`` at construction when a configuration violates it. Transitions
+``SampleDecoder`` raises ``DecodeConfigError`` at construction when a configuration violates it (compared on
+the configuration's numbers with a relative tolerance; the window is then capped at 0.4 of the slot, so a
+product of exactly 5 whose window would round up by a sample is accepted). This is the simulator's limit; the
+physical one, which ``SystemConfig`` checks for every configuration, is ``engine.aod_limits.PHYSICAL_MIN_SLOT_SPACING``
+(a tone moved one site in one slot must be resolvable from its neighbour within the slot: one beat period). Transitions
 must also linger near the half-site point for a good part of a window: min-jerk, and tanh/erf up to a
 sharpness of about 8 (at 1 MHz / 10 us) decode; much sharper jumps look like a hand-off at mid-slot.
 
@@ -58,11 +62,13 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from engine.aod_limits import PHYSICAL_MIN_SLOT_SPACING
 from engine.config import SystemConfig
 from engine.tones import check_below_nyquist, tones_of
 
 __all__ = [
     "FULL_FRACTION",
+    "SIMULATOR_MIN_SLOT_SPACING",
     "DecodeConfigError",
     "DecodedSegment",
     "SampleDecoder",
@@ -79,6 +85,9 @@ MOVER_FRACTION = 0.4
 REPORT_FRACTION = 0.3
 #: Longest window as a fraction of the slot (see the resolution condition above).
 MAX_WINDOW_FRACTION = 0.4
+#: The decoder's resolution condition, ``slot_duration_s * spacing_hz >= 2 / MAX_WINDOW_FRACTION``: a limit
+#: of this simulator (it follows a move through five windows of a slot), not of the AOD.
+SIMULATOR_MIN_SLOT_SPACING = 2 / MAX_WINDOW_FRACTION
 
 
 #: Memory of each axis's cache of decoded slots (entries: a power of two, at most 8192), and its ways per set.
@@ -230,23 +239,32 @@ class SampleDecoder:
             axes.append(_AxisModel(*site_tones(config, "y"), self.sample_rate_hz, "y"))
         self._axes = axes
         min_gap = min(a.min_gap_hz for a in axes)
-        self.window_samples = int(np.ceil(self.sample_rate_hz / min_gap - 1e-9))
-        if self.window_samples > MAX_WINDOW_FRACTION * self.slot_samples:
-            spacing = 2 * min_gap
+        spacing = 2 * min_gap
+        # the condition is stated on the configuration's own numbers, with a relative tolerance: 10 us x 0.5 MHz
+        # is 5 even where the product rounds to 4.999999999 or the window rounds up to a whole sample
+        if config.waveforms.slot_duration_s * spacing < SIMULATOR_MIN_SLOT_SPACING * (1 - 1e-9):
             raise DecodeConfigError(
-                f"the simulated AWG cannot resolve tones {spacing / 1e6:g} MHz apart in "
+                f"the simulated AWG's decoder cannot resolve tones {spacing / 1e6:g} MHz apart in "
                 f"{config.waveforms.slot_duration_s * 1e6:g} us slots: it needs slot_duration_s * spacing_hz >= "
-                f"{2 / MAX_WINDOW_FRACTION:g} (got {config.waveforms.slot_duration_s * spacing:g}); widen the tone "
-                "spacing or lengthen waveforms.slot_duration_s"
+                f"{SIMULATOR_MIN_SLOT_SPACING:g} (got {config.waveforms.slot_duration_s * spacing:.6g}). This is a "
+                "limit of the simulated lab (five decoding windows per slot), not of an AOD, which needs >= "
+                f"{PHYSICAL_MIN_SLOT_SPACING:g}; widen the tone spacing or lengthen waveforms.slot_duration_s"
             )
+        # one beat period of the half-site grid, but never more than the slot leaves to each window (at the limit
+        # the two differ by the rounding of a sample, and least squares still separates the grid)
+        self.window_samples = min(
+            int(np.ceil(self.sample_rate_hz / min_gap - 1e-9)),
+            int(np.floor(MAX_WINDOW_FRACTION * self.slot_samples + 1e-9)),
+        )
         width = transition_width_fraction(config.waveforms.shape, config.waveforms.shape_sharpness)
-        if width < MIN_TRANSITION_PER_WINDOW * self.window_samples / self.slot_samples:
+        window_fraction = self.window_samples / self.slot_samples
+        if width < MIN_TRANSITION_PER_WINDOW * window_fraction:
             raise DecodeConfigError(
-                f"waveforms.shape '{config.waveforms.shape}' with shape_sharpness {config.waveforms.shape_sharpness:g} "
-                f"moves a tone in {width:.2f} of a slot (10-90 %), faster than the simulated AWG's decoding window "
-                f"({self.window_samples / self.slot_samples:.2f} of a slot) can follow; lower shape_sharpness to at most "
-                f"{_max_sharpness(config.waveforms.shape, self.window_samples / self.slot_samples):.1f}, use min-jerk, or "
-                "widen the tone spacing"
+                f"waveforms.shape '{config.waveforms.shape}' with shape_sharpness "
+                f"{config.waveforms.shape_sharpness:g} moves a tone in {width:.2f} of a slot (10-90 %), faster than "
+                f"the simulated AWG's decoding window ({window_fraction:.2f} of a slot) can follow; lower "
+                f"shape_sharpness to at most {_max_sharpness(config.waveforms.shape, window_fraction):.1f}, use "
+                "min-jerk, or widen the tone spacing"
             )
         n, w = self.slot_samples, self.window_samples
         self.window_offsets = np.array(
@@ -256,7 +274,7 @@ class SampleDecoder:
         self._gather = self.window_offsets[:, None] + np.arange(w, dtype=np.int64)[None, :]  # [W, L]
         self._kernel_args = [
             _KernelArgs.build(p, (a.ref_amp * self.full_scale).astype(np.float32), a.n_sites)
-            for p, a in zip(self._proj, axes)
+            for p, a in zip(self._proj, axes, strict=True)
         ]
         # the cache's hash weights (``_hash_slots``): fixed random 32-bit numbers, one pair per sample of a slot
         self._hash_weights = np.random.default_rng(0x51075).integers(0, 1 << 32, (2, n), dtype=np.uint64)
@@ -290,7 +308,7 @@ class SampleDecoder:
         return amp.reshape(n_slots, len(WINDOW_CENTRES), q)
 
     def decode(self, samples: np.ndarray) -> DecodedSegment:
-        """Tracks of every whole slot in ``samples`` (``int16[n, n_channels]``; a tail shorter than a slot is ignored)."""
+        """Tracks of every whole slot in ``samples`` (``int16[n, n_channels]``; a shorter tail is ignored)."""
         if samples.ndim != 2 or samples.shape[1] < self.n_axes:
             raise ValueError(f"expected int16[n, >= {self.n_axes}] samples, got shape {samples.shape}")
         if samples.dtype != np.int16:
@@ -313,7 +331,8 @@ class SampleDecoder:
             )  # fmt: skip
             tracks.append(out)
             counts.append(cnt)
-        return _segment(n_slots, tracks, counts, all(_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts)))
+        stationary = all(_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts, strict=True))
+        return _segment(n_slots, tracks, counts, stationary)
 
     def decode_reference(self, samples: np.ndarray) -> DecodedSegment:
         """``decode`` the plain way: every amplitude of every window by one matrix product, then classify."""
@@ -330,7 +349,8 @@ class SampleDecoder:
                 _classify(self.amplitudes(samples, axis), model.n_sites, MOVER_FRACTION, REPORT_FRACTION, out, cnt)
             tracks.append(out)
             counts.append(cnt)
-        return _segment(n_slots, tracks, counts, all(_is_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts)))
+        stationary = all(_is_stationary(t, c, FULL_FRACTION) for t, c in zip(tracks, counts, strict=True))
+        return _segment(n_slots, tracks, counts, stationary)
 
 
 def _segment(n_slots: int, tracks: list[np.ndarray], counts: list[np.ndarray], stationary: bool) -> DecodedSegment:

@@ -23,15 +23,25 @@ from typing import Any
 
 import numpy as np
 
+from engine.imaging_calibration import Population, ThresholdCalibration, calibrate_threshold, error_probability
 from engine.timing import PAPER_TABLE1_MS, STAGES
 
 __all__ = [
     "COLOURS",
     "StageRow",
+    "assembly_series",
     "atom_map_svg",
     "atom_points",
+    "counts_histogram",
+    "cycles_histogram",
     "frame_to_rgb",
+    "heatmap_svg",
     "history_series",
+    "imaging_summary",
+    "plan_svg",
+    "population_curves",
+    "threshold_series",
+    "worst_traps",
     "paper_column",
     "shot_html",
     "stage_rows",
@@ -433,3 +443,211 @@ def frame_to_rgb(
     if step > 1:
         note += f", every {step}×{step} px block shown by its brightest pixel"
     return np.ascontiguousarray(rgb), note
+
+
+# -- imaging: the histogram of weighted sums, its two populations and the thresholds ---------------------------
+
+
+def counts_histogram(counts: np.ndarray, *, bins: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """``(bin centres, counts per bin)`` of PSF-weighted sums, over their 0.1-99.9th percentile range."""
+    x = np.asarray(counts, dtype=np.float64).ravel()
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return np.zeros(0), np.zeros(0)
+    lo, hi = np.percentile(x, [0.1, 99.9])
+    hi = max(hi, lo + 1.0)
+    hist, edges = np.histogram(np.clip(x, lo, hi), bins=bins, range=(lo, hi))
+    return 0.5 * (edges[:-1] + edges[1:]), hist.astype(np.float64)
+
+
+def _threshold_row(fit: ThresholdCalibration, threshold: float | None) -> dict[str, float | None]:
+    """A threshold and the detection error the fitted populations imply for it (``None``s if no threshold)."""
+    if threshold is None:
+        return {"threshold": None, "error": None}
+    empty, atom = _populations(fit)
+    error = error_probability(np.float64(threshold), empty, atom, fit.fraction_filled)
+    return {"threshold": float(threshold), "error": float(error)}
+
+
+def _populations(fit: ThresholdCalibration) -> tuple[Population, Population]:
+    return (
+        Population(np.float64(fit.mean_empty), np.float64(fit.std_empty), np.float64(fit.skew_empty)),
+        Population(np.float64(fit.mean_atom), np.float64(fit.std_atom), np.float64(fit.skew_atom)),
+    )
+
+
+def imaging_summary(
+    counts: np.ndarray, *, current_threshold: float | None, candidate_threshold: float | None = None
+) -> dict[str, Any]:
+    """The two populations fitted to ``counts`` (empty / one atom, as a calibration fits them) and, for the
+    threshold in use and for a calibration's candidate, the detection error that fit implies.
+
+    ``fit`` is ``None`` when the sums do not split into two populations (too few, or an empty or full array).
+    ``best`` is the fit's own minimum-error threshold."""
+    x = np.asarray(counts, dtype=np.float64).ravel()
+    try:
+        fit = calibrate_threshold(x)
+    except ValueError:
+        return {"samples": int(x.size), "fit": None, "best": None, "current": None, "candidate": None}
+    return {
+        "samples": int(x.size),
+        "fit": {
+            "mean_empty": fit.mean_empty, "std_empty": fit.std_empty, "mean_atom": fit.mean_atom,
+            "std_atom": fit.std_atom, "fraction_filled": fit.fraction_filled, "separation": fit.separation,
+        },
+        "best": _threshold_row(fit, fit.threshold),
+        "current": _threshold_row(fit, current_threshold),
+        "candidate": _threshold_row(fit, candidate_threshold),
+    }
+
+
+def population_curves(centres: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two fitted populations as expected sums per histogram bin at ``centres`` (zeros if no fit), to draw
+    over ``counts_histogram(counts)``."""
+    x = np.asarray(counts, dtype=np.float64).ravel()
+    zero = np.zeros(len(centres))
+    if len(centres) < 2:
+        return zero, zero
+    try:
+        fit = calibrate_threshold(x)
+    except ValueError:
+        return zero, zero
+    empty, atom = _populations(fit)
+    width = float(centres[1] - centres[0])
+    n = x[np.isfinite(x)].size
+    c = np.asarray(centres, dtype=np.float64)
+    return (
+        n * (1 - fit.fraction_filled) * width * np.exp(empty.logpdf(c)),
+        n * fit.fraction_filled * width * np.exp(atom.logpdf(c)),
+    )
+
+
+def threshold_series(centres: np.ndarray, height: float, threshold: float | None) -> np.ndarray:
+    """A vertical line for a uPlot series on the histogram's x values: ``height`` in the bin holding the
+    threshold, NaN elsewhere (drawn as a bar)."""
+    line = np.full(len(centres), np.nan)
+    if threshold is not None and len(centres):
+        line[int(np.argmin(np.abs(np.asarray(centres) - threshold)))] = height
+    return line
+
+
+# -- per-trap maps ----------------------------------------------------------------------------------------------
+
+
+def _heat_colour(value: float) -> str:
+    """0 -> red, 0.5 -> yellow, 1 -> green (NaN: grey)."""
+    if not math.isfinite(value):
+        return "#dddddd"
+    v = min(1.0, max(0.0, value))
+    r = 215 if v < 0.5 else int(215 - (v - 0.5) * 2 * (215 - 44))
+    g = int(40 + v * 2 * (190 - 40)) if v < 0.5 else int(190 - (v - 0.5) * 2 * (190 - 160))
+    return f"#{r:02x}{g:02x}{40:02x}"
+
+
+def heatmap_svg(
+    values: np.ndarray, positions_xy: np.ndarray, *, name: str, samples: np.ndarray | None = None,
+    max_width_px: float = 340, max_cell_px: float = 16,
+) -> str:
+    """One statistic per trap (``float[ny, nx]`` in [0, 1], NaN: no data) drawn where the camera sees each trap;
+    every cell carries a ``<title>`` (hover: trap, row, column, value and samples) and ``data-value``."""
+    v = np.asarray(values, dtype=np.float64)
+    ny, nx = v.shape
+    cells, across, down = trap_layout(positions_xy)
+    if cells.shape[0] != v.size:
+        raise ValueError(f"{v.size} values for {cells.shape[0]} traps")
+    cell = max(2.0, min(max_cell_px, max_width_px / across))
+    width, height = across * cell, down * cell
+    flat = v.ravel()
+    n_samples = None if samples is None else np.asarray(samples).ravel()
+    parts = [
+        f'<svg xmlns="http://www.w3.org/2000/svg" class="heatmap" data-name="{html.escape(name)}" '
+        f'data-rows="{ny}" data-cols="{nx}" width="{width:.0f}" height="{height:.0f}" '
+        f'viewBox="0 0 {width:.1f} {height:.1f}">'
+    ]
+    for t, ((cx, cy), value) in enumerate(zip(cells, flat)):
+        shown = "—" if not math.isfinite(value) else f"{value:.3f}"
+        extra = "" if n_samples is None else f", {int(n_samples[t])} samples"
+        parts.append(
+            f'<rect x="{cx * cell:.1f}" y="{cy * cell:.1f}" width="{cell:.1f}" height="{cell:.1f}" '
+            f'fill="{_heat_colour(value)}" data-value="{shown}"><title>trap {t} (row {t // nx}, column {t % nx}): '
+            f"{html.escape(name)} {shown}{extra}</title></rect>"
+        )
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def worst_traps(values: np.ndarray, *, k: int = 3) -> list[tuple[int, float]]:
+    """The ``k`` traps with the lowest value (NaN skipped): ``(flat index, value)``, lowest first."""
+    flat = np.asarray(values, dtype=np.float64).ravel()
+    order = [int(i) for i in np.argsort(np.where(np.isfinite(flat), flat, np.inf)) if math.isfinite(flat[i])]
+    return [(i, float(flat[i])) for i in order[:k]]
+
+
+# -- assembly ---------------------------------------------------------------------------------------------------
+
+
+def assembly_series(shots: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
+    """Assembly figures from shot dicts (``ShotRecord.to_dict()``), oldest first.
+
+    Per shot: ``shot_id``, ``time_to_defect_free_ms`` (when the image showing the defect-free array was in
+    memory, NaN for a shot that did not end defect-free), ``cycles`` (rearrangement cycles). Per rearrangement
+    cycle: ``cycle_shot`` (its shot id), ``lost`` (atoms the next image is missing: atoms before minus after,
+    the observed loss of that cycle whatever its cause), ``slots``, ``steps`` and ``atoms_moved``."""
+    ids, ttd, n_cycles = [], [], []
+    cycle_shot, lost, slots, steps, moved = [], [], [], [], []
+    for shot in shots:
+        cycles = shot["cycles"]
+        ids.append(shot["shot_id"])
+        ok = shot["outcome"] == "success" and cycles
+        ttd.append(float(cycles[-1].get("t_image_ms", np.nan)) if ok else np.nan)
+        n_cycles.append(sum(1 for c in cycles if c.get("n_slots", 0) > 0))
+        for before, after in zip(cycles, cycles[1:]):
+            if before.get("n_slots", 0) > 0:
+                cycle_shot.append(shot["shot_id"])
+                lost.append(int(before["atoms"]) - int(after["atoms"]))
+                slots.append(before["n_slots"])
+                steps.append(before.get("n_steps", 0))
+                moved.append(before.get("atoms_moved", 0))
+    f = np.float64
+    return {
+        "shot_id": np.array(ids, dtype=f), "time_to_defect_free_ms": np.array(ttd, dtype=f),
+        "cycles": np.array(n_cycles, dtype=f), "cycle_shot": np.array(cycle_shot, dtype=f),
+        "lost": np.array(lost, dtype=f), "slots": np.array(slots, dtype=f), "steps": np.array(steps, dtype=f),
+        "atoms_moved": np.array(moved, dtype=f),
+    }
+
+
+def cycles_histogram(cycles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(0..max, shots with that many rearrangement cycles)``."""
+    c = np.asarray(cycles, dtype=np.int64)
+    if c.size == 0:
+        return np.zeros(1), np.zeros(1)
+    hist = np.bincount(c)
+    return np.arange(hist.size, dtype=np.float64), hist.astype(np.float64)
+
+
+# -- history: a recorded cycle with its plan drawn as arrows ----------------------------------------------------
+
+
+def plan_svg(
+    occupancy: Sequence[str], target: Sequence[str], positions_xy: np.ndarray, moves: np.ndarray | None,
+    *, max_width_px: float = 720, title: str | None = None,
+) -> str:
+    """The atom map of one cycle with its plan over it: an arrow from each moved atom's trap to where the plan
+    leaves it (``moves``: ``int[k, 2]`` source, destination)."""
+    cells, across, _ = trap_layout(positions_xy)
+    svg = atom_map_svg(occupancy, target, positions_xy, max_width_px=max_width_px, title=title)
+    if moves is None or len(moves) == 0:
+        return svg
+    cell = max(3.0, min(22.0, max_width_px / across))
+    arrows = [
+        '<defs><marker id="arrow-head" viewBox="0 0 10 10" refX="9" refY="5" markerWidth="4" markerHeight="4" '
+        'orient="auto-start-reverse"><path d="M0,0 L10,5 L0,10 z" fill="#333"/></marker></defs>'
+    ]
+    for src, dst in np.asarray(moves, dtype=np.int64):
+        (x0, y0), (x1, y1) = (cells[src] + 0.5) * cell, (cells[dst] + 0.5) * cell
+        arrows.append(
+            f'<line class="move" x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="#333" '
+            f'stroke-width="{max(0.8, 0.08 * cell):.1f}" marker-end="url(#arrow-head)"/>'
+        )
+    return svg.replace("</svg>", "".join(arrows) + "</svg>")

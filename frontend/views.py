@@ -25,6 +25,7 @@ import numpy as np
 
 from engine.imaging_calibration import Population, ThresholdCalibration, calibrate_threshold, error_probability
 from engine.timing import PAPER_TABLE1_MS, STAGES
+from engine.trap_stats import TrapStatistics
 
 __all__ = [
     "COLOURS",
@@ -32,6 +33,7 @@ __all__ = [
     "assembly_series",
     "atom_map_svg",
     "atom_points",
+    "candidate_threshold",
     "counts_histogram",
     "cycles_histogram",
     "frame_to_rgb",
@@ -45,6 +47,7 @@ __all__ = [
     "paper_column",
     "shot_html",
     "stage_rows",
+    "stats_report",
     "state_colour",
     "status_markdown",
     "timing_html",
@@ -112,14 +115,14 @@ def atom_map_svg(
     ]
     if title:
         parts.append(f"<title>{html.escape(title)}</title>")
-    for (cx, cy), t in zip(cells, tgt):
+    for (cx, cy), t in zip(cells, tgt, strict=True):
         if t:
             parts.append(
                 f'<rect x="{cx * cell:.1f}" y="{cy * cell:.1f}" width="{cell:.1f}" height="{cell:.1f}" '
                 f'fill="{COLOURS["target_bg"]}"/>'
             )
     stroke = max(1.0, 0.14 * cell)
-    for (cx, cy), o, t in zip(cells, occ, tgt):
+    for (cx, cy), o, t in zip(cells, occ, tgt, strict=True):
         x, y = (cx + 0.5) * cell, (cy + 0.5) * cell
         if o and t:
             parts.append(f'<circle data-state="in_place" cx="{x:.1f}" cy="{y:.1f}" r="{r:.1f}" fill="{COLOURS["in_place"]}"/>')
@@ -564,7 +567,7 @@ def heatmap_svg(
         f'data-rows="{ny}" data-cols="{nx}" width="{width:.0f}" height="{height:.0f}" '
         f'viewBox="0 0 {width:.1f} {height:.1f}">'
     ]
-    for t, ((cx, cy), value) in enumerate(zip(cells, flat)):
+    for t, ((cx, cy), value) in enumerate(zip(cells, flat, strict=True)):
         shown = "—" if not math.isfinite(value) else f"{value:.3f}"
         extra = "" if n_samples is None else f", {int(n_samples[t])} samples"
         parts.append(
@@ -601,7 +604,7 @@ def assembly_series(shots: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]
         ok = shot["outcome"] == "success" and cycles
         ttd.append(float(cycles[-1].get("t_image_ms", np.nan)) if ok else np.nan)
         n_cycles.append(sum(1 for c in cycles if c.get("n_slots", 0) > 0))
-        for before, after in zip(cycles, cycles[1:]):
+        for before, after in zip(cycles, cycles[1:], strict=False):
             if before.get("n_slots", 0) > 0:
                 cycle_shot.append(shot["shot_id"])
                 lost.append(int(before["atoms"]) - int(after["atoms"]))
@@ -651,3 +654,60 @@ def plan_svg(
             f'stroke-width="{max(0.8, 0.08 * cell):.1f}" marker-end="url(#arrow-head)"/>'
         )
     return svg.replace("</svg>", "".join(arrows) + "</svg>")
+
+
+# -- the statistics as the API serves them (GET /api/stats; the dashboard draws the same numbers) ---------------
+
+
+def _grid(values: np.ndarray) -> list[list[float | None]]:
+    return [[float(v) if math.isfinite(v) else None for v in row] for row in np.asarray(values, dtype=np.float64)]
+
+
+def candidate_threshold(calibrations: Sequence[Mapping[str, Any]], config_digest: str) -> float | None:
+    """The newest threshold calibration of this configuration not applied yet: the candidate to look at."""
+    for cal in reversed(list(calibrations)):
+        if cal.get("kind") == "threshold" and cal.get("config_digest") == config_digest and not cal.get("applied"):
+            return float(cal["threshold"])
+    return None
+
+
+def stats_report(
+    stats: TrapStatistics | None, *, shape: tuple[int, int], config_digest: str, threshold: float | None,
+    candidate: float | None, shots: Sequence[Mapping[str, Any]], bins: int = 60,
+) -> dict[str, Any]:
+    """Everything the physicist's view shows, as JSON-ready data: per-trap maps (``None`` where undefined),
+    the imaging histogram of the recent first images with its two fitted populations and the error of the
+    threshold in use and of a calibration's candidate, and the assembly figures of ``shots`` (oldest first)."""
+    ny, nx = shape
+    empty_maps = {k: np.full(shape, np.nan) for k in ("loading_probability", "survival", "defect_rate",
+                                                      "disagreement_rate")}
+    maps = stats.maps() if stats is not None else empty_maps
+    trials = stats.samples()["survival_trials"] if stats is not None else np.zeros(shape, dtype=np.int64)
+    recent = stats.recent_counts() if stats is not None else np.zeros(0)
+    centres, hist = counts_histogram(recent, bins=bins)
+    assembly = assembly_series(shots)
+    ttd = assembly["time_to_defect_free_ms"]
+    done = ttd[np.isfinite(ttd)]
+    return {
+        "config_digest": config_digest,
+        "shape": [ny, nx],
+        "shots": stats.shots if stats is not None else 0,
+        "truth_shots": stats.truth_shots if stats is not None else 0,
+        "maps": {name: _grid(values) for name, values in maps.items()},
+        "survival_trials": np.asarray(trials).astype(int).tolist(),
+        "imaging": {
+            "histogram": {"centres": centres.tolist(), "counts": hist.tolist()},
+            **imaging_summary(recent, current_threshold=threshold, candidate_threshold=candidate),
+        },
+        "assembly": {
+            "shots": len(shots),
+            "success_rate": float(np.mean([s["outcome"] == "success" for s in shots])) if shots else None,
+            "time_to_defect_free_ms_median": float(np.median(done)) if done.size else None,
+            "cycles_histogram": cycles_histogram(assembly["cycles"])[1].astype(int).tolist(),
+            "lost_per_cycle_mean": float(assembly["lost"].mean()) if assembly["lost"].size else None,
+            "slots_per_cycle_mean": float(assembly["slots"].mean()) if assembly["slots"].size else None,
+            "atoms_moved_per_cycle_mean": (
+                float(assembly["atoms_moved"].mean()) if assembly["atoms_moved"].size else None
+            ),
+        },
+    }

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine
 from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves
 from engine.trap_stats import StatsBook, TrapStatistics
-from drivers.sim.lab import build_sim_lab
 
 NAN = np.nan
 

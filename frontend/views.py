@@ -30,6 +30,7 @@ from engine.trap_stats import TrapStatistics
 __all__ = [
     "COLOURS",
     "StageRow",
+    "assembly_html",
     "assembly_series",
     "atom_map_svg",
     "atom_points",
@@ -38,8 +39,11 @@ __all__ = [
     "cycles_histogram",
     "frame_to_rgb",
     "heatmap_svg",
+    "history_html",
     "history_series",
+    "imaging_html",
     "imaging_summary",
+    "lab_stats",
     "plan_svg",
     "population_curves",
     "threshold_series",
@@ -526,11 +530,13 @@ def population_curves(centres: np.ndarray, counts: np.ndarray) -> tuple[np.ndarr
 
 
 def threshold_series(centres: np.ndarray, height: float, threshold: float | None) -> np.ndarray:
-    """A vertical line for a uPlot series on the histogram's x values: ``height`` in the bin holding the
-    threshold, NaN elsewhere (drawn as a bar)."""
+    """A marker for a uPlot series on the histogram's x values: a spike of ``height`` in the bin holding the
+    threshold, 0 in the bins either side, NaN (not drawn) elsewhere."""
     line = np.full(len(centres), np.nan)
     if threshold is not None and len(centres):
-        line[int(np.argmin(np.abs(np.asarray(centres) - threshold)))] = height
+        i = int(np.argmin(np.abs(np.asarray(centres) - threshold)))
+        line[max(0, i - 1) : i + 2] = 0.0
+        line[i] = height
     return line
 
 
@@ -671,6 +677,19 @@ def candidate_threshold(calibrations: Sequence[Mapping[str, Any]], config_digest
     return None
 
 
+def lab_stats(lab: Any, *, assembly_shots: int = 200) -> dict[str, Any]:
+    """``stats_report`` for the running configuration of a lab service (``GET /api/stats`` answers this; the
+    dashboard draws it): its statistics book, configured threshold, calibrations and recent shots."""
+    config = lab.config
+    digest = config.digest()
+    _, records = lab.shots(limit=assembly_shots, offset=0)
+    shots = [r.to_dict() for r in reversed(records) if r.config_digest == digest]
+    return stats_report(
+        lab.trap_stats.get(digest), shape=(config.array.ny, config.array.nx), config_digest=digest,
+        threshold=config.imaging.threshold, candidate=candidate_threshold(lab.calibrations(), digest), shots=shots,
+    )
+
+
 def stats_report(
     stats: TrapStatistics | None, *, shape: tuple[int, int], config_digest: str, threshold: float | None,
     candidate: float | None, shots: Sequence[Mapping[str, Any]], bins: int = 60,
@@ -711,3 +730,66 @@ def stats_report(
             ),
         },
     }
+
+
+# -- the physicist's view as HTML (the dashboard's tabs) --------------------------------------------------------
+
+
+def _error_text(row: Mapping[str, Any] | None, label: str) -> str:
+    if not row or row.get("threshold") is None:
+        return f"{label}: none"
+    return f"{label}: {row['threshold']:.1f} counts, detection error {row['error']:.1e}"
+
+
+def imaging_html(imaging: Mapping[str, Any]) -> str:
+    """The fit under the histogram: the two populations and the error each threshold implies."""
+    fit = imaging.get("fit")
+    if fit is None:
+        body = "the counts do not split into two populations yet (too few shots, or an empty or full array)"
+        return f'<div id="imaging" data-samples="{imaging["samples"]}" data-fit="0" style="font-size:12px">{body}</div>'
+    current = imaging.get("current") or {}
+    current_txt = (
+        _error_text(current, "threshold in use")
+        if current.get("threshold") is not None
+        else "threshold in use: fitted by the engine when the configuration was applied"
+    )
+    return (
+        f'<div id="imaging" data-samples="{imaging["samples"]}" data-fit="1" style="font-size:12px">'
+        f"{imaging['samples']} sums · empty {fit['mean_empty']:.0f} ± {fit['std_empty']:.0f}, one atom "
+        f"{fit['mean_atom']:.0f} ± {fit['std_atom']:.0f} counts ({fit['fraction_filled']:.0%} filled, "
+        f"{fit['separation']:.1f} σ apart)<br>{html.escape(current_txt)}<br>"
+        f"{html.escape(_error_text(imaging.get('candidate'), 'candidate from the latest calibration'))}<br>"
+        f"{html.escape(_error_text(imaging.get('best'), 'best for these counts'))}</div>"
+    )
+
+
+def assembly_html(assembly: Mapping[str, Any]) -> str:
+    def num(v: float | None, fmt: str) -> str:
+        return "—" if v is None else format(v, fmt)
+
+    return (
+        f'<div id="assembly" data-shots="{assembly["shots"]}" style="font-size:12px">'
+        f"{assembly['shots']} shots: defect-free {num(assembly['success_rate'], '.0%')}, median time to a "
+        f"defect-free array {num(assembly['time_to_defect_free_ms_median'], '.1f')} ms · per rearrangement "
+        f"cycle: {num(assembly['slots_per_cycle_mean'], '.1f')} slots, "
+        f"{num(assembly['atoms_moved_per_cycle_mean'], '.1f')} atoms moved, "
+        f"{num(assembly['lost_per_cycle_mean'], '.2f')} atoms lost (seen missing in the next image)</div>"
+    )
+
+
+def history_html(shot: Mapping[str, Any], cycle: int, positions_xy: np.ndarray, *, download_url: str) -> str:
+    """A recorded shot (``GET /api/runs/{name}/shots/{index}``) at one cycle: its atom map with the plan as
+    arrows, the plan's size and the stage times, and a link to download the run file."""
+    cycles = shot["cycles"]
+    c = cycles[min(max(cycle, 0), len(cycles) - 1)]
+    moves = np.array(c.get("moves") or [], dtype=np.int64).reshape(-1, 2)
+    svg = plan_svg(c["occupancy"], shot["target"], positions_xy, moves, max_width_px=680)
+    stages = " · ".join(f"{k} {v / 1e3:.3f} ms" for k, v in c["stage_us"].items())
+    return (
+        f'<div id="history" data-shot-id="{int(shot["shot_id"])}" data-cycle="{c["index"]}" '
+        f'data-cycles="{len(cycles)}" data-moves="{len(moves)}" style="font-size:12px">'
+        f'<b>shot {int(shot["shot_id"])}</b> ({html.escape(shot["outcome"])}), cycle {c["index"]} of '
+        f"{len(cycles)}: {c['atoms']} atoms, {c['defects']} missing, plan {c['n_slots']} slots, "
+        f"{len(moves)} atoms moved · <a href=\"{html.escape(download_url)}\" download>download the run file</a>"
+        f'<br><span style="color:#555">{html.escape(stages)}</span><br>{svg}</div>'
+    )

@@ -83,3 +83,21 @@ def test_a_refused_change_is_shown_and_changes_nothing(dash: tuple[Dashboard, La
     dashboard._apply({"solver": {"algorithm": "refuse"}}, "problem")
     assert "problem not applied" in dashboard.h_message.content and "refuse" in dashboard.h_message.content
     assert service.config == before
+
+
+def test_physicist_tabs_show_maps_assembly_and_a_recorded_shot(dash: tuple[Dashboard, LabService]) -> None:
+    dashboard, service = dash
+    records = [service.shot() for _ in range(3)]
+    ny, nx = service.config.array.ny, service.config.array.nx
+    wait_for(lambda: f'data-shots="{len(records)}"' in dashboard.h_traps.content)
+    assert f'data-rows="{ny}" data-cols="{nx}"' in dashboard.h_traps.content
+    assert dashboard.h_traps.content.count("<rect") == ny * nx
+    wait_for(lambda: 'data-shots="3"' in dashboard.h_assembly.content)
+    assert len(dashboard.p_cycles_hist.data[0]) >= 1
+    service.run_store.flush()  # type: ignore[union-attr]
+    dashboard._list_runs()
+    dashboard.d_run.value = dashboard.d_run.options[0]
+    dashboard.n_shot.value = 1
+    dashboard._history_shown = None
+    wait_for(lambda: f'data-shot-id="{records[1].shot_id}"' in dashboard.h_history.content)
+    assert "download the run file" in dashboard.h_history.content

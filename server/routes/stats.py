@@ -78,19 +78,6 @@ class StatsResetOut(BaseModel):
     config_digest: str = Field(description="the configuration whose statistics were forgotten")
 
 
-def stats_of(service: Any) -> dict[str, Any]:
-    """The report for the running configuration (the dashboard draws the same numbers)."""
-    config = service.config
-    digest = config.digest()
-    _, records = service.shots(limit=ASSEMBLY_SHOTS, offset=0)
-    shots = [r.to_dict() for r in reversed(records) if r.config_digest == digest]
-    return views.stats_report(
-        service.trap_stats.get(digest), shape=(config.array.ny, config.array.nx), config_digest=digest,
-        threshold=config.imaging.threshold, candidate=views.candidate_threshold(service.calibrations(), digest),
-        shots=shots,
-    )
-
-
 @reads.get(
     "/api/stats",
     response_model=StatsOut,
@@ -98,7 +85,7 @@ def stats_of(service: Any) -> dict[str, Any]:
     "disagreements), the imaging histogram with its fitted populations and thresholds, and assembly figures",
 )
 def get_stats(service: Service) -> dict[str, Any]:
-    return stats_of(service)
+    return views.lab_stats(service, assembly_shots=ASSEMBLY_SHOTS)
 
 
 @commands.post(

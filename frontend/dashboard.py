@@ -678,8 +678,10 @@ class Dashboard:
         if not shots:
             return
         a = views.assembly_series(shots)
+        done = np.isfinite(a["time_to_defect_free_ms"])  # defect-free shots only: a NaN blanks a uPlot plot
+        if done.any():
+            self.p_ttd.data = (a["shot_id"][done], a["time_to_defect_free_ms"][done])
         if a["shot_id"].size:
-            self.p_ttd.data = (a["shot_id"], a["time_to_defect_free_ms"])
             values, hist = views.cycles_histogram(a["cycles"])
             self.p_cycles_hist.data = (values, hist)
         if a["slots"].size:

@@ -531,12 +531,10 @@ def population_curves(centres: np.ndarray, counts: np.ndarray) -> tuple[np.ndarr
 
 def threshold_series(centres: np.ndarray, height: float, threshold: float | None) -> np.ndarray:
     """A marker for a uPlot series on the histogram's x values: a spike of ``height`` in the bin holding the
-    threshold, 0 in the bins either side, NaN (not drawn) elsewhere."""
-    line = np.full(len(centres), np.nan)
+    threshold, 0 elsewhere (no NaN: viser hands uPlot typed arrays, and one NaN blanks the whole plot)."""
+    line = np.zeros(len(centres))
     if threshold is not None and len(centres):
-        i = int(np.argmin(np.abs(np.asarray(centres) - threshold)))
-        line[max(0, i - 1) : i + 2] = 0.0
-        line[i] = height
+        line[int(np.argmin(np.abs(np.asarray(centres) - threshold)))] = height
     return line
 
 

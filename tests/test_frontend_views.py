@@ -186,8 +186,8 @@ def test_imaging_summary_without_two_populations_says_so() -> None:
 
 def test_threshold_series_marks_the_bin_of_the_threshold() -> None:
     line = views.threshold_series(np.array([0.0, 1.0, 2.0, 3.0]), 7.0, 2.2)
-    assert np.isnan(line[0]) and line[2] == 7.0 and line[1] == line[3] == 0.0
-    assert np.isnan(views.threshold_series(np.array([0.0, 1.0]), 7.0, None)).all()
+    np.testing.assert_array_equal(line, [0.0, 0.0, 7.0, 0.0])
+    assert not views.threshold_series(np.array([0.0, 1.0]), 7.0, None).any()
 
 
 def test_heatmap_draws_each_trap_with_its_number_on_hover() -> None:

@@ -73,10 +73,9 @@ class TrapStatistics:
             moves = cycles[k].moves
             if moves is None:  # no plan played in this cycle
                 continue
-            destination = np.flatnonzero(occ[k])
-            if moves.size:
-                where = {int(s): int(d) for s, d in moves}
-                destination = np.array([where.get(int(t), int(t)) for t in destination], dtype=np.int64)
+            where = np.arange(n)  # where the plan leaves the atom of each trap
+            where[moves[:, 0]] = moves[:, 1]
+            destination = where[np.flatnonzero(occ[k])]
             np.add.at(self.survival_trials, destination, 1)
             np.add.at(self.survival_kept, destination, occ[k + 1][destination])
         self.target = np.asarray(record.target, dtype=bool).reshape(-1)

@@ -646,7 +646,7 @@ class Dashboard:
         hist = np.asarray(imaging["histogram"]["counts"])
         if centres.size < 2 or stats is None:
             return
-        empty, atom = views.population_curves(centres, stats.recent_counts())
+        empty, atom = views.population_curves(centres, imaging["fit"], int(hist.sum()))
         top = float(hist.max()) if hist.size else 1.0
         current = (imaging["current"] or {}).get("threshold")
         candidate = (imaging["candidate"] or {}).get("threshold")

@@ -174,7 +174,7 @@ def test_imaging_summary_finds_the_two_populations_and_the_error_of_each_thresho
     assert summary["best"]["error"] <= summary["current"]["error"]
     # the curves drawn over the histogram hold about every sum
     centres, hist = views.counts_histogram(counts, bins=80)
-    empty, atom = views.population_curves(centres, counts)
+    empty, atom = views.population_curves(centres, summary["fit"], int(hist.sum()))
     assert empty.sum() + atom.sum() == pytest.approx(hist.sum(), rel=0.05)
     assert centres[np.argmax(empty)] == pytest.approx(100.0, abs=10.0)
 

@@ -28,8 +28,10 @@ class HistogramOut(BaseModel):
 class PopulationsOut(BaseModel):
     mean_empty: float
     std_empty: float
+    skew_empty: float
     mean_atom: float
     std_atom: float
+    skew_atom: float
     fraction_filled: float
     separation: float = Field(description="distance between the means in combined standard deviations")
 

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from engine.imaging_calibration import Population, ThresholdCalibration, calibrate_threshold, error_probability
+from engine.imaging_calibration import Population, calibrate_threshold, error_probability
 from engine.timing import PAPER_TABLE1_MS, STAGES
 from engine.trap_stats import TrapStatistics
 
@@ -467,20 +467,22 @@ def counts_histogram(counts: np.ndarray, *, bins: int = 60) -> tuple[np.ndarray,
     return 0.5 * (edges[:-1] + edges[1:]), hist.astype(np.float64)
 
 
-def _threshold_row(fit: ThresholdCalibration, threshold: float | None) -> dict[str, float | None]:
+def _populations(fit: Mapping[str, float]) -> tuple[Population, Population]:
+    """The empty and the one-atom population of a fit (``imaging_summary(...)["fit"]``)."""
+
+    def population(kind: str) -> Population:
+        return Population(*(np.asarray(fit[f"{m}_{kind}"], dtype=np.float64) for m in ("mean", "std", "skew")))
+
+    return population("empty"), population("atom")
+
+
+def _threshold_row(fit: Mapping[str, float], threshold: float | None) -> dict[str, float | None]:
     """A threshold and the detection error the fitted populations imply for it (``None``s if no threshold)."""
     if threshold is None:
         return {"threshold": None, "error": None}
     empty, atom = _populations(fit)
-    error = error_probability(np.float64(threshold), empty, atom, fit.fraction_filled)
+    error = error_probability(np.asarray(threshold, dtype=np.float64), empty, atom, fit["fraction_filled"])
     return {"threshold": float(threshold), "error": float(error)}
-
-
-def _populations(fit: ThresholdCalibration) -> tuple[Population, Population]:
-    return (
-        Population(np.float64(fit.mean_empty), np.float64(fit.std_empty), np.float64(fit.skew_empty)),
-        Population(np.float64(fit.mean_atom), np.float64(fit.std_atom), np.float64(fit.skew_atom)),
-    )
 
 
 #: The most sums a histogram fit uses (an evenly spaced subset beyond): 64x128 traps x 50 shots are 400,000,
@@ -508,16 +510,17 @@ def imaging_summary(
         fit = calibrate_threshold(_fit_sample(x))
     except ValueError:
         return {"samples": int(x.size), "fit": None, "best": None, "current": None, "candidate": None}
+    populations = {
+        "mean_empty": fit.mean_empty, "std_empty": fit.std_empty, "skew_empty": fit.skew_empty,
+        "mean_atom": fit.mean_atom, "std_atom": fit.std_atom, "skew_atom": fit.skew_atom,
+        "fraction_filled": fit.fraction_filled, "separation": fit.separation,
+    }
     return {
         "samples": int(x.size),
-        "fit": {
-            "mean_empty": fit.mean_empty, "std_empty": fit.std_empty, "skew_empty": fit.skew_empty,
-            "mean_atom": fit.mean_atom, "std_atom": fit.std_atom, "skew_atom": fit.skew_atom,
-            "fraction_filled": fit.fraction_filled, "separation": fit.separation,
-        },
-        "best": _threshold_row(fit, fit.threshold),
-        "current": _threshold_row(fit, current_threshold),
-        "candidate": _threshold_row(fit, candidate_threshold),
+        "fit": populations,
+        "best": _threshold_row(populations, fit.threshold),
+        "current": _threshold_row(populations, current_threshold),
+        "candidate": _threshold_row(populations, candidate_threshold),
     }
 
 
@@ -529,8 +532,7 @@ def population_curves(
     zero = np.zeros(len(centres))
     if fit is None or len(centres) < 2:
         return zero, zero
-    empty = Population(np.float64(fit["mean_empty"]), np.float64(fit["std_empty"]), np.float64(fit["skew_empty"]))
-    atom = Population(np.float64(fit["mean_atom"]), np.float64(fit["std_atom"]), np.float64(fit["skew_atom"]))
+    empty, atom = _populations(fit)
     width = float(centres[1] - centres[0])
     c = np.asarray(centres, dtype=np.float64)
     p = fit["fraction_filled"]

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import httpx
 import pytest
+from server_fakes import FakeEngine, example_config
 
 from engine.engine import EngineThread
 from frontend.dashboard import Dashboard
 from server.runstore import RunStore
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
 
 pytest.importorskip("viser")
 

@@ -475,11 +475,13 @@ class Dashboard:
 
     def _history_or_back(self, event: Any) -> None:
         """History and map choices are shared by every tab: a client that may not change things gets the
-        previous choice back; otherwise the view follows."""
+        previous choice back; otherwise the view follows. (The dashboard's own changes, without a client, are
+        not choices: putting a choice back, or new options, must not overwrite the last allowed one.)"""
         if event.client_id is not None and not self._allowed(event):
             self._restore_choices()
             return
-        self._choices = (self.d_map.value, self.d_run.value, int(self.n_shot.value), int(self.n_cycle.value))
+        if event.client_id is not None:
+            self._choices = (self.d_map.value, self.d_run.value, int(self.n_shot.value), int(self.n_cycle.value))
         self._stats_key = None
         self._new_shot.set()
 

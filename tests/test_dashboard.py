@@ -4,6 +4,7 @@ controls go through the service (a refused change is shown, and changes nothing)
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -101,3 +102,35 @@ def test_physicist_tabs_show_maps_assembly_and_a_recorded_shot(dash: tuple[Dashb
     dashboard._history_shown = None
     wait_for(lambda: f'data-shot-id="{records[1].shot_id}"' in dashboard.h_history.content)
     assert "download the run file" in dashboard.h_history.content
+
+
+def test_new_controls_are_read_only_without_the_token(tmp_path: Path) -> None:
+    """Reset, run-file listing and the shared map/history choices obey the token like every other control."""
+    service = LabService(
+        engine_thread=EngineThread(lambda: FakeEngine(example_config())),  # type: ignore[arg-type, return-value]
+        store=RunStore(tmp_path / "runs"),
+        pause_s=0.01,
+    ).start()
+    dashboard = Dashboard(service, port=0, refresh_s=0.05, token="dash-token")
+    dashboard.start()
+    try:
+        service.shot()
+        digest = service.config.digest()
+        stranger = SimpleNamespace(client_id=41)
+        dashboard._guarded(dashboard._reset_stats)(stranger)
+        assert service.trap_stats.get(digest) is not None  # not reset
+        dashboard._guarded(dashboard._list_runs)(stranger)
+        assert list(dashboard.d_run.options) == ["(none)"]  # not listed
+        dashboard.d_map.value = "loading_probability"
+        dashboard._history_or_back(stranger)
+        assert dashboard.d_map.value == "survival"  # put back
+        assert dashboard.login(7, "dash-token")
+        member = SimpleNamespace(client_id=7)
+        dashboard.d_map.value = "loading_probability"
+        dashboard._history_or_back(member)
+        assert dashboard.d_map.value == "loading_probability"
+        dashboard._guarded(dashboard._reset_stats)(member)
+        assert service.trap_stats.get(digest) is None
+    finally:
+        dashboard.stop()
+        service.close()

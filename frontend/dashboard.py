@@ -218,9 +218,15 @@ class Dashboard:
             self.b_apply_threshold = gui.add_button("Apply fitted threshold", disabled=True)
         self.f_sim = gui.add_folder("Simulated lab")
         with self.f_sim:
-            self.s_loading = gui.add_slider("Loading prob.", min=0.05, max=1.0, step=0.01, initial_value=cfg.sim.loading_probability)
-            self.s_transfer = gui.add_slider("Survival / transfer", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_transfer)
-            self.s_step = gui.add_slider("Survival / step", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_step)
+            self.s_loading = gui.add_slider(
+                "Loading prob.", min=0.05, max=1.0, step=0.01, initial_value=cfg.sim.loading_probability
+            )
+            self.s_transfer = gui.add_slider(
+                "Survival / transfer", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_transfer
+            )
+            self.s_step = gui.add_slider(
+                "Survival / step", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_step
+            )
             self.c_lossless = gui.add_checkbox("Lossless", initial_value=cfg.sim.lossless)
             self.b_sim = gui.add_button("Apply simulation")
         self.f_sim.visible = self._simulated(cfg)
@@ -234,12 +240,19 @@ class Dashboard:
         stats.dock_below(gui.main_panel)
         live = gui.add_panel()
         with live.add_tab("Atoms"):
-            self.h_atoms = gui.add_html('<div id="atom-map" data-shot-id="" style="color:#777">waiting for the first shot…</div>')
-            self.i_camera = gui.add_image(np.zeros((8, 32, 3), dtype=np.uint8), label="camera: no frame yet", format="png")
+            self.h_atoms = gui.add_html(
+                '<div id="atom-map" data-shot-id="" style="color:#777">waiting for the first shot…</div>'
+            )
+            self.i_camera = gui.add_image(
+                np.zeros((8, 32, 3), dtype=np.uint8), label="camera: no frame yet", format="png"
+            )
             empty = (np.zeros(1), np.zeros(1))
             self.p_success = gui.add_uplot(
                 data=empty,
-                series=({"label": "shot"}, {"label": "defect-free % (last 20 shots)", "stroke": views.COLOURS["in_place"], "width": 2}),
+                series=(
+                    {"label": "shot"},
+                    {"label": "defect-free % (last 20 shots)", "stroke": views.COLOURS["in_place"], "width": 2},
+                ),
                 title="Success rate over time",
                 scales={"x": {"time": False}, "y": {"auto": False, "range": [0, 100]}},
                 height=150,
@@ -314,8 +327,11 @@ class Dashboard:
             self.h_assembly = gui.add_html('<div id="assembly" data-shots="0" style="color:#777">no shots yet</div>')
             self.p_ttd = gui.add_uplot(
                 data=empty,
-                series=({"label": "shot"}, {"label": "time to a defect-free array (ms)", "stroke": views.COLOURS["ours"],
-                                            "width": 0, "points": {"show": True, "size": 5}}),
+                series=(
+                    {"label": "shot"},
+                    {"label": "time to a defect-free array (ms)", "stroke": views.COLOURS["ours"], "width": 0,
+                     "points": {"show": True, "size": 5}},
+                ),
                 title="Time to a defect-free array",
                 scales={"x": {"time": False}},
                 height=140,
@@ -456,7 +472,8 @@ class Dashboard:
             current = f"configured: {fit['current_threshold']:.1f} counts, error {1 - fit['current_fidelity']:.1e}"
         self.h_calibration.content = (
             f'<div style="font-size:12px">fitted: {fit["threshold"]:.1f} counts, predicted error '
-            f"{1 - fit['fidelity']:.1e} ({fit['images']} frames, {fit['fraction_filled']:.0%} filled)<br>{current}</div>"
+            f"{1 - fit['fidelity']:.1e} ({fit['images']} frames, {fit['fraction_filled']:.0%} filled)<br>"
+            f"{current}</div>"
         )
         self.b_apply_threshold.disabled = False
         self._say("threshold fitted; apply it to use it")
@@ -506,7 +523,8 @@ class Dashboard:
         self._config_digest = digest
         self._positions = trap_positions_px(cfg)
         self._column = views.paper_column(cfg.array.nx, cfg.array.ny)
-        self.d_algorithm.value = cfg.solver.algorithm if cfg.solver.algorithm in self.d_algorithm.options else self.d_algorithm.value
+        if cfg.solver.algorithm in self.d_algorithm.options:
+            self.d_algorithm.value = cfg.solver.algorithm
         self._presets = target_presets(cfg)
         self.d_target.options = list(self._presets)
         self.d_target.value = "as configured"
@@ -542,7 +560,8 @@ class Dashboard:
         newest = records[0]
         for record in reversed(records):  # oldest first, so the dict keeps shot order
             if record.shot_id not in self._dicts:
-                self._dicts[record.shot_id] = record.to_dict() | {"rearrangements": sum(1 for c in record.cycles if c.n_slots > 0)}
+                rearrangements = sum(1 for c in record.cycles if c.n_slots > 0)
+                self._dicts[record.shot_id] = record.to_dict() | {"rearrangements": rearrangements}
         keep = {r.shot_id for r in records}
         for shot_id in [k for k in self._dicts if k not in keep]:
             del self._dicts[shot_id]
@@ -560,7 +579,8 @@ class Dashboard:
             self.h_atoms.content = views.shot_html(latest, self._positions, width_px=720)
         self._draw_scene(latest, frame if frame is not None and frame[0] == newest.shot_id else None)
         recent = shots[-self.timing_shots :]
-        self.h_timing.content = views.timing_html(views.stage_rows(recent, self._column), self._column, shots=len(recent))
+        rows = views.stage_rows(recent, self._column)
+        self.h_timing.content = views.timing_html(rows, self._column, shots=len(recent))
         ids, rate, cycles = views.history_series(shots)
         self.p_success.data = (ids, rate)
         self.p_cycles.data = (ids, cycles)

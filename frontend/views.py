@@ -129,14 +129,18 @@ def atom_map_svg(
     for (cx, cy), o, t in zip(cells, occ, tgt, strict=True):
         x, y = (cx + 0.5) * cell, (cy + 0.5) * cell
         if o and t:
-            parts.append(f'<circle data-state="in_place" cx="{x:.1f}" cy="{y:.1f}" r="{r:.1f}" fill="{COLOURS["in_place"]}"/>')
+            parts.append(
+                f'<circle data-state="in_place" cx="{x:.1f}" cy="{y:.1f}" r="{r:.1f}" fill="{COLOURS["in_place"]}"/>'
+            )
         elif t:
             parts.append(
                 f'<circle data-state="missing" cx="{x:.1f}" cy="{y:.1f}" r="{r - stroke / 2:.1f}" '
                 f'fill="{COLOURS["missing_fill"]}" stroke="{COLOURS["missing"]}" stroke-width="{stroke:.1f}"/>'
             )
         elif o:
-            parts.append(f'<circle data-state="spare" cx="{x:.1f}" cy="{y:.1f}" r="{r:.1f}" fill="{COLOURS["spare"]}"/>')
+            parts.append(
+                f'<circle data-state="spare" cx="{x:.1f}" cy="{y:.1f}" r="{r:.1f}" fill="{COLOURS["spare"]}"/>'
+            )
         else:
             parts.append(
                 f'<circle data-state="empty" cx="{x:.1f}" cy="{y:.1f}" r="{max(1.0, 0.14 * cell):.1f}" '
@@ -337,7 +341,9 @@ def timing_html(rows: Sequence[StageRow], column: str, *, shots: int) -> str:
 # -- history ----------------------------------------------------------------------------------------------------
 
 
-def history_series(shots: Sequence[Mapping[str, Any]], *, window: int = 20) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def history_series(
+    shots: Sequence[Mapping[str, Any]], *, window: int = 20
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(shot_id, success rate in % over the last `window` shots, rearrangement cycles)`` in shot order."""
     if not shots:
         empty = np.zeros(0)
@@ -389,7 +395,8 @@ def state_colour(state: str) -> str:
 # -- camera image -----------------------------------------------------------------------------------------------
 
 _LUT_ANCHORS = np.array(
-    [[0, 0, 4], [40, 11, 84], [101, 21, 110], [159, 42, 99], [212, 72, 66], [245, 125, 21], [250, 193, 39], [252, 255, 164]],
+    [[0, 0, 4], [40, 11, 84], [101, 21, 110], [159, 42, 99], [212, 72, 66], [245, 125, 21], [250, 193, 39],
+     [252, 255, 164]],
     dtype=np.float64,
 )  # an 'inferno'-like ramp
 

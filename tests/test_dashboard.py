@@ -4,9 +4,9 @@ controls go through the service (a refused change is shown, and changes nothing)
 from __future__ import annotations
 
 import time
-from types import SimpleNamespace
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import httpx
 import pytest

@@ -145,7 +145,7 @@ def test_target_presets_are_valid_configurations(example: str) -> None:
     cfg = load_config(EXAMPLES / example)
     presets = target_presets(cfg)
     assert next(iter(presets)) == "as configured" and len(presets) >= 3
-    for label, target in presets.items():
+    for target in presets.values():
         data = cfg.model_dump(mode="json")
         data["target"] = {**data["target"], "count": None, "mask": None, **target}
         SystemConfig.model_validate(data)  # raises if a preset does not fit the array

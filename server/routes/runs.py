@@ -21,7 +21,9 @@ reads = APIRouter()
 RunName = Annotated[
     str, Path(pattern=RUN_NAME, max_length=40, description="a run file's name, e.g. 20260101-120000-0.h5")
 ]
-_MISSING: dict[int | str, dict[str, Any]] = {404: {**ERR, "description": "no such run file (or the server records no runs)"}}
+_MISSING: dict[int | str, dict[str, Any]] = {
+    404: {**ERR, "description": "no such run file (or the server records no runs)"}
+}
 
 
 class RunOut(BaseModel):

@@ -22,7 +22,7 @@ from engine.devices import DeviceError, DeviceSet
 from engine.host import EngineCommands
 from engine.imaging import Detector, calibration_frames
 from engine.operations import Plan
-from engine.records import CycleRecord, Outcome, ShotRecord
+from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves
 from engine.solvers import Solver, UnsolvableError
 from engine.streaming import Streamer
 from engine.targets import build_target, target_filled
@@ -86,6 +86,8 @@ class _Pipeline:
     scratch_occupancy: np.ndarray  # the rehearsal's detection goes here, never into ``occupancy``
     history: np.ndarray  # bool[max_cycles + 1, ny, nx]
     timer: StageTimer
+    counts_history: np.ndarray  # float32[max_cycles + 1, n_traps]: each cycle's PSF-weighted counts
+    steps_history: list[np.ndarray | None]  # each cycle's plan steps, copied once its playback has started
 
 
 class Engine:
@@ -132,6 +134,8 @@ class Engine:
             scratch_occupancy=np.zeros((arr.ny, arr.nx), dtype=bool),
             history=np.zeros((config.loop.max_cycles + 1, arr.ny, arr.nx), dtype=bool),
             timer=StageTimer(dev.clock.now_s, config.loop.max_cycles + 1, charge=getattr(dev.clock, "charge", None)),
+            counts_history=np.zeros((config.loop.max_cycles + 1, arr.n_traps), dtype=np.float32),
+            steps_history=[None] * (config.loop.max_cycles + 1),
         )
         pipeline.solver.check_target(target)
         target_filled(pipeline.occupancy, target)  # compile (or load) before the engine reports ready
@@ -194,6 +198,7 @@ class Engine:
         if self.lab is not None:
             self.lab.prepare_shot()
         p.timer.reset()
+        p.steps_history[:] = [None] * len(p.steps_history)
         latencies = np.zeros(p.config.loop.max_cycles + 1)
         cycle_times = np.zeros((p.config.loop.max_cycles + 1, 2))  # cycle began, image in memory (clock s)
         plan_stats = np.zeros((p.config.loop.max_cycles + 1, 3), dtype=np.int64)  # slots, steps, underruns
@@ -237,6 +242,8 @@ class Engine:
                     latency_s=float(latencies[c]),
                     t_start_s=float(cycle_times[c, 0] - record.t_start_s),
                     t_image_s=float(cycle_times[c, 1] - record.t_start_s),
+                    counts=p.counts_history[c].copy(),
+                    moves=atom_moves(steps) if (steps := p.steps_history[c]) is not None else None,
                 )
             )
         if self.lab is not None:
@@ -288,6 +295,7 @@ class Engine:
         p.detector.classify(p.occupancy)
         timer.lap("II.threshold")
         p.history[cycle] = p.occupancy
+        p.counts_history[cycle] = p.detector.counts
         if target_filled(p.occupancy, p.target):
             return Outcome.SUCCESS
         if cycle == p.config.loop.max_cycles:
@@ -302,6 +310,7 @@ class Engine:
         report = p.streamer.stream(plan.operations, timer)
         latencies[cycle] = report.t_started_s - t_image
         plan_stats[cycle] = (report.n_slots, plan.n_steps, report.underruns)
+        p.steps_history[cycle] = plan.steps.copy()  # after playback started: off the latency path
         return None
 
     def _rehearse(self, p: _Pipeline) -> None:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CycleRecord", "Outcome", "ShotRecord", "occupancy_to_rows"]
+__all__ = ["CycleRecord", "Outcome", "ShotRecord", "atom_moves", "occupancy_to_rows"]
 
 
 class Outcome(str, Enum):
@@ -21,6 +21,20 @@ class Outcome(str, Enum):
 def occupancy_to_rows(occupancy: np.ndarray) -> list[str]:
     """``bool[ny, nx]`` as one string of '0'/'1' per row: compact, readable JSON."""
     return ["".join("1" if v else "0" for v in row) for row in np.asarray(occupancy, dtype=bool)]
+
+
+def atom_moves(steps: np.ndarray) -> np.ndarray:
+    """A plan's one-site steps (``int[m, 2]``: source, destination, in execution order) as one row per moved
+    atom: ``int32[k, 2]`` (the trap it started in, the trap it ended in), sorted by source.
+
+    An atom is followed through its steps: a step from a site where an earlier step left an atom continues
+    that atom's path. Atoms whose steps bring them back to their start do not count as moved.
+    """
+    origin_of: dict[int, int] = {}  # site an atom is at now -> the trap it started the plan in
+    for src, dst in np.asarray(steps, dtype=np.int64).reshape(-1, 2):
+        origin_of[int(dst)] = origin_of.pop(int(src), int(src))
+    moves = sorted((start, end) for end, start in origin_of.items() if start != end)
+    return np.array(moves, dtype=np.int32).reshape(-1, 2)
 
 
 @dataclass
@@ -36,6 +50,15 @@ class CycleRecord:
     latency_s: float = 0.0  # image in memory -> playback started
     t_start_s: float = 0.0  # the cycle began (camera triggered), seconds after the shot began
     t_image_s: float = 0.0  # its image was in host memory, seconds after the shot began
+    # For diagnostics (per-trap statistics, imaging histograms, plans drawn as arrows); not in ``to_dict``,
+    # so the live messages stay small: routes that need them read them from the record or the run file.
+    counts: np.ndarray | None = None  # float32[n_traps]: the PSF-weighted counts of this cycle's image
+    moves: np.ndarray | None = None  # int32[k, 2]: the plan's moved atoms, (source, destination) trap index
+
+    @property
+    def atoms_moved(self) -> int:
+        """Atoms the cycle's plan moved (0 for a cycle without a plan)."""
+        return 0 if self.moves is None else int(self.moves.shape[0])
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -50,6 +73,7 @@ class CycleRecord:
             "latency_us": self.latency_s * 1e6,
             "t_start_ms": self.t_start_s * 1e3,
             "t_image_ms": self.t_image_s * 1e3,
+            "atoms_moved": self.atoms_moved,
         }
 
 

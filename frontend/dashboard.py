@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import contextlib
 import hmac
+import html
 import io
 import logging
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -31,13 +33,22 @@ from engine.config import SystemConfig
 from engine.psf import trap_positions_px
 from engine.records import ShotRecord
 from engine.solvers import ALGORITHMS
+from engine.trap_stats import StatsBook
 from frontend import views
 
-__all__ = ["Dashboard", "LabClient", "target_presets"]
+__all__ = ["Dashboard", "LabClient", "RunFiles", "target_presets"]
 
 log = logging.getLogger("llrs.dashboard")
 
 CALIBRATION_IMAGES = 40  # frames a threshold fit takes from the dashboard (as the API's default)
+
+#: The per-trap maps the "Traps" tab offers (statistic -> what it says).
+TRAP_MAPS = {
+    "survival": "survival per rearrangement cycle",
+    "loading_probability": "loading probability",
+    "defect_rate": "shots ending with this target trap empty",
+    "disagreement_rate": "detected vs simulated ground truth, disagreements",
+}
 
 
 class LabClient(Protocol):
@@ -67,6 +78,22 @@ class LabClient(Protocol):
     def add_listener(self, callback: Callable[[ShotRecord], None]) -> None: ...
 
     def remove_listener(self, callback: Callable[[ShotRecord], None]) -> None: ...
+
+    def calibrations(self) -> list[dict[str, Any]]: ...
+
+    @property
+    def trap_stats(self) -> StatsBook: ...
+
+    @property
+    def run_store(self) -> RunFiles | None: ...
+
+
+class RunFiles(Protocol):
+    """The run files the dashboard's history reads (``server.runstore.RunStore``, as ``/api/runs`` does)."""
+
+    def runs(self, *, limit: int = 100) -> list[dict[str, Any]]: ...
+
+    def read_shot(self, name: str, index: int) -> dict[str, Any]: ...
 
 
 def target_presets(config: SystemConfig) -> OrderedDict[str, dict[str, Any]]:
@@ -103,6 +130,7 @@ class Dashboard:
         history: int = 200,
         timing_shots: int = 50,
         refresh_s: float = 0.5,
+        stats_refresh_s: float = 2.0,
     ) -> None:
         self.service = service
         self.host = host
@@ -113,6 +141,10 @@ class Dashboard:
         self.history = history
         self.timing_shots = timing_shots
         self.refresh_s = refresh_s
+        self.stats_refresh_s = stats_refresh_s  # the physicist's tabs: histograms and maps over many shots
+        self._stats_drawn_s = 0.0
+        self._stats_key: tuple[Any, ...] | None = None
+        self._history_shown: tuple[str, int, int] | None = None
         self._server: Any = None
         self._new_shot = threading.Event()
         self._closing = threading.Event()
@@ -124,6 +156,8 @@ class Dashboard:
         self._presets: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self._positions = np.zeros((0, 2))
         self._threshold_fit: str | None = None  # id of the last threshold fit, until it is applied
+        self._runs: dict[str, dict[str, Any]] = {}
+        self._choices: tuple[str, str, int, int] = ("survival", "(none)", 0, 0)
         self.updates = 0  # drawn shots, for tests
 
     # -- life cycle -------------------------------------------------------------------------------------------
@@ -184,9 +218,15 @@ class Dashboard:
             self.b_apply_threshold = gui.add_button("Apply fitted threshold", disabled=True)
         self.f_sim = gui.add_folder("Simulated lab")
         with self.f_sim:
-            self.s_loading = gui.add_slider("Loading prob.", min=0.05, max=1.0, step=0.01, initial_value=cfg.sim.loading_probability)
-            self.s_transfer = gui.add_slider("Survival / transfer", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_transfer)
-            self.s_step = gui.add_slider("Survival / step", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_step)
+            self.s_loading = gui.add_slider(
+                "Loading prob.", min=0.05, max=1.0, step=0.01, initial_value=cfg.sim.loading_probability
+            )
+            self.s_transfer = gui.add_slider(
+                "Survival / transfer", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_transfer
+            )
+            self.s_step = gui.add_slider(
+                "Survival / step", min=0.8, max=1.0, step=0.001, initial_value=cfg.sim.survival_step
+            )
             self.c_lossless = gui.add_checkbox("Lossless", initial_value=cfg.sim.lossless)
             self.b_sim = gui.add_button("Apply simulation")
         self.f_sim.visible = self._simulated(cfg)
@@ -200,12 +240,19 @@ class Dashboard:
         stats.dock_below(gui.main_panel)
         live = gui.add_panel()
         with live.add_tab("Atoms"):
-            self.h_atoms = gui.add_html('<div id="atom-map" data-shot-id="" style="color:#777">waiting for the first shot…</div>')
-            self.i_camera = gui.add_image(np.zeros((8, 32, 3), dtype=np.uint8), label="camera: no frame yet", format="png")
+            self.h_atoms = gui.add_html(
+                '<div id="atom-map" data-shot-id="" style="color:#777">waiting for the first shot…</div>'
+            )
+            self.i_camera = gui.add_image(
+                np.zeros((8, 32, 3), dtype=np.uint8), label="camera: no frame yet", format="png"
+            )
             empty = (np.zeros(1), np.zeros(1))
             self.p_success = gui.add_uplot(
                 data=empty,
-                series=({"label": "shot"}, {"label": "defect-free % (last 20 shots)", "stroke": views.COLOURS["in_place"], "width": 2}),
+                series=(
+                    {"label": "shot"},
+                    {"label": "defect-free % (last 20 shots)", "stroke": views.COLOURS["in_place"], "width": 2},
+                ),
                 title="Success rate over time",
                 scales={"x": {"time": False}, "y": {"auto": False, "range": [0, 100]}},
                 height=150,
@@ -221,6 +268,7 @@ class Dashboard:
                 scales={"x": {"time": False}},
                 height=130,
             )
+        self._build_physics_tabs(live)
         live.dock_right()
         live.set_width(720)
         server.scene.set_up_direction("+z")
@@ -234,10 +282,86 @@ class Dashboard:
         self.b_sim.on_click(self._guarded(lambda: self._apply(self._sim_patch(), "simulation")))
         self.b_fit_threshold.on_click(self._guarded(self._fit_threshold))
         self.b_apply_threshold.on_click(self._guarded(self._apply_threshold))
+        self.b_reset_stats.on_click(self._guarded(self._reset_stats))
+        self.b_runs.on_click(self._guarded(self._list_runs))
         for field in (self.d_algorithm, self.d_target, self.n_max_cycles, self.s_loading, self.s_transfer,
                       self.s_step, self.c_lossless):
             field.on_update(self._put_back_unless_allowed)
+        for field in (self.d_map, self.d_run, self.n_shot, self.n_cycle):
+            field.on_update(self._history_or_back)
         self._sync_config(force=True)
+
+    def _build_physics_tabs(self, live: Any) -> None:
+        """The physicist's view: imaging histogram, per-trap maps, assembly figures, recorded shots."""
+        gui = self._server.gui
+        empty = (np.zeros(1), np.zeros(1))
+        with live.add_tab("Imaging"):
+            self.h_imaging = gui.add_html('<div id="imaging" data-samples="0" style="color:#777">no images yet</div>')
+            self.p_histogram = gui.add_uplot(
+                data=(np.zeros(1),) * 6,
+                series=(
+                    {"label": "counts"},
+                    {"label": "traps", "stroke": "#555", "fill": "rgba(120,120,120,0.25)", "width": 1},
+                    {"label": "fit: empty", "stroke": views.COLOURS["missing"], "width": 2},
+                    {"label": "fit: one atom", "stroke": views.COLOURS["in_place"], "width": 2},
+                    {"label": "threshold in use", "stroke": "#000", "width": 2},
+                    {"label": "candidate (calibration)", "stroke": "#ff7f0e", "width": 2, "dash": [6, 4]},
+                ),
+                title="PSF-weighted counts per trap (first image of recent shots)",
+                scales={"x": {"time": False}},
+                height=220,
+            )
+            self.p_histogram_shot = gui.add_uplot(
+                data=empty,
+                series=({"label": "counts"}, {"label": "traps, latest shot", "stroke": views.COLOURS["ours"],
+                                              "fill": "rgba(76,120,200,0.2)", "width": 1}),
+                title="This shot (every image)",
+                scales={"x": {"time": False}},
+                height=140,
+            )
+        with live.add_tab("Traps"):
+            self.d_map = gui.add_dropdown("Statistic", options=list(TRAP_MAPS), initial_value="survival")
+            self.h_traps = gui.add_html('<div id="trap-maps" data-shots="0" style="color:#777">no shots yet</div>')
+            self.b_reset_stats = gui.add_button("Reset statistics (this configuration)")
+        with live.add_tab("Assembly"):
+            self.h_assembly = gui.add_html('<div id="assembly" data-shots="0" style="color:#777">no shots yet</div>')
+            self.p_ttd = gui.add_uplot(
+                data=empty,
+                series=(
+                    {"label": "shot"},
+                    {"label": "time to a defect-free array (ms)", "stroke": views.COLOURS["ours"], "width": 0,
+                     "points": {"show": True, "size": 5}},
+                ),
+                title="Time to a defect-free array",
+                scales={"x": {"time": False}},
+                height=140,
+            )
+            self.p_cycles_hist = gui.add_uplot(
+                data=empty,
+                series=({"label": "rearrangement cycles"}, {"label": "shots", "stroke": "#555",
+                                                            "fill": "rgba(120,120,120,0.25)", "width": 1}),
+                title="Cycles per shot (histogram)",
+                scales={"x": {"time": False}},
+                height=120,
+            )
+            self.p_plan = gui.add_uplot(
+                data=(np.zeros(1),) * 4,
+                series=(
+                    {"label": "cycle"},
+                    {"label": "slots", "stroke": views.COLOURS["ours"], "width": 1},
+                    {"label": "atoms moved", "stroke": views.COLOURS["in_place"], "width": 1},
+                    {"label": "atoms lost", "stroke": views.COLOURS["missing"], "width": 1},
+                ),
+                title="Plan size and atoms lost, per rearrangement cycle",
+                scales={"x": {"time": False}},
+                height=140,
+            )
+        with live.add_tab("History"):
+            self.b_runs = gui.add_button("List run files")
+            self.d_run = gui.add_dropdown("Run file", options=["(none)"], initial_value="(none)")
+            self.n_shot = gui.add_number("Shot in file", initial_value=0, min=0, step=1)
+            self.n_cycle = gui.add_number("Cycle", initial_value=0, min=0, step=1)
+            self.h_history = gui.add_html('<div id="history" style="color:#777">pick a run file</div>')
 
     # -- authority --------------------------------------------------------------------------------------------
 
@@ -348,10 +472,41 @@ class Dashboard:
             current = f"configured: {fit['current_threshold']:.1f} counts, error {1 - fit['current_fidelity']:.1e}"
         self.h_calibration.content = (
             f'<div style="font-size:12px">fitted: {fit["threshold"]:.1f} counts, predicted error '
-            f"{1 - fit['fidelity']:.1e} ({fit['images']} frames, {fit['fraction_filled']:.0%} filled)<br>{current}</div>"
+            f"{1 - fit['fidelity']:.1e} ({fit['images']} frames, {fit['fraction_filled']:.0%} filled)<br>"
+            f"{current}</div>"
         )
         self.b_apply_threshold.disabled = False
         self._say("threshold fitted; apply it to use it")
+
+    def _reset_stats(self) -> None:
+        self.service.trap_stats.reset(self.service.config.digest())
+        self._stats_key = None
+        self._say("statistics of this configuration reset")
+
+    def _list_runs(self) -> None:
+        store = self.service.run_store
+        runs = store.runs() if store is not None else []
+        self._runs = {r["name"]: r for r in runs}
+        self.d_run.options = list(self._runs) or ["(none)"]
+        self._say(f"{len(runs)} run files" if runs else "no run files yet")
+
+    def _history_or_back(self, event: Any) -> None:
+        """History and map choices are shared by every tab: a client that may not change things gets the
+        previous choice back; otherwise the view follows. (The dashboard's own changes, without a client, are
+        not choices: putting a choice back, or new options, must not overwrite the last allowed one.)"""
+        if event.client_id is not None and not self._allowed(event):
+            self._restore_choices()
+            return
+        if event.client_id is not None:
+            self._choices = (self.d_map.value, self.d_run.value, int(self.n_shot.value), int(self.n_cycle.value))
+        self._stats_key = None
+        self._new_shot.set()
+
+    def _restore_choices(self) -> None:
+        chosen_map, run, shot, cycle = self._choices
+        self.d_map.value, self.n_shot.value, self.n_cycle.value = chosen_map, shot, cycle
+        if run in self.d_run.options:
+            self.d_run.value = run
 
     def _apply_threshold(self) -> None:
         if self._threshold_fit is not None:
@@ -368,7 +523,8 @@ class Dashboard:
         self._config_digest = digest
         self._positions = trap_positions_px(cfg)
         self._column = views.paper_column(cfg.array.nx, cfg.array.ny)
-        self.d_algorithm.value = cfg.solver.algorithm if cfg.solver.algorithm in self.d_algorithm.options else self.d_algorithm.value
+        if cfg.solver.algorithm in self.d_algorithm.options:
+            self.d_algorithm.value = cfg.solver.algorithm
         self._presets = target_presets(cfg)
         self.d_target.options = list(self._presets)
         self.d_target.value = "as configured"
@@ -404,7 +560,8 @@ class Dashboard:
         newest = records[0]
         for record in reversed(records):  # oldest first, so the dict keeps shot order
             if record.shot_id not in self._dicts:
-                self._dicts[record.shot_id] = record.to_dict() | {"rearrangements": sum(1 for c in record.cycles if c.n_slots > 0)}
+                rearrangements = sum(1 for c in record.cycles if c.n_slots > 0)
+                self._dicts[record.shot_id] = record.to_dict() | {"rearrangements": rearrangements}
         keep = {r.shot_id for r in records}
         for shot_id in [k for k in self._dicts if k not in keep]:
             del self._dicts[shot_id]
@@ -422,7 +579,8 @@ class Dashboard:
             self.h_atoms.content = views.shot_html(latest, self._positions, width_px=720)
         self._draw_scene(latest, frame if frame is not None and frame[0] == newest.shot_id else None)
         recent = shots[-self.timing_shots :]
-        self.h_timing.content = views.timing_html(views.stage_rows(recent, self._column), self._column, shots=len(recent))
+        rows = views.stage_rows(recent, self._column)
+        self.h_timing.content = views.timing_html(rows, self._column, shots=len(recent))
         ids, rate, cycles = views.history_series(shots)
         self.p_success.data = (ids, rate)
         self.p_cycles.data = (ids, cycles)
@@ -482,5 +640,90 @@ class Dashboard:
                 return
             try:
                 self._refresh()
+                self._refresh_physics()
             except Exception:  # never let one bad frame kill the dashboard
                 log.exception("dashboard refresh failed")
+
+    # -- the physicist's view ---------------------------------------------------------------------------------
+
+    def _refresh_physics(self) -> None:
+        """Histograms, maps and assembly figures (at most every ``stats_refresh_s``: they summarize many shots,
+        and a 64x128 map is a large picture), and the recorded shot the History tab points at."""
+        self._draw_history()
+        now = time.monotonic()
+        digest = self.service.config.digest()
+        stats = self.service.trap_stats.get(digest)
+        key = (digest, stats.shots if stats is not None else 0, self.d_map.value)
+        if key == self._stats_key or now - self._stats_drawn_s < self.stats_refresh_s and self._stats_key:
+            return
+        report = views.lab_stats(self.service, assembly_shots=self.history)
+        self._draw_imaging(report, stats)
+        self._draw_traps(report)
+        self._draw_assembly(report)
+        self._stats_key, self._stats_drawn_s = key, now
+
+    def _draw_imaging(self, report: dict[str, Any], stats: Any) -> None:
+        imaging = report["imaging"]
+        centres = np.asarray(imaging["histogram"]["centres"])
+        hist = np.asarray(imaging["histogram"]["counts"])
+        if centres.size < 2 or stats is None:
+            return
+        empty, atom = views.population_curves(centres, imaging["fit"], int(hist.sum()))
+        top = float(hist.max()) if hist.size else 1.0
+        current = (imaging["current"] or {}).get("threshold")
+        candidate = (imaging["candidate"] or {}).get("threshold")
+        self.p_histogram.data = (
+            centres, hist, empty, atom, views.threshold_series(centres, top, current),
+            views.threshold_series(centres, top, candidate),
+        )
+        shot_centres, shot_hist = views.counts_histogram(stats.latest_counts, bins=40)
+        if shot_centres.size:
+            self.p_histogram_shot.data = (shot_centres, shot_hist)
+        self.h_imaging.content = views.imaging_html(imaging)
+
+    def _draw_traps(self, report: dict[str, Any]) -> None:
+        if report["shots"] == 0 or len(self._positions) != report["shape"][0] * report["shape"][1]:
+            return
+        name = self.d_map.value
+        values = np.array(report["maps"][name], dtype=np.float64)
+        samples = np.array(report["survival_trials"]) if name == "survival" else None
+        svg = views.heatmap_svg(values, self._positions, name=name, samples=samples, max_width_px=680)
+        worst = ", ".join(f"trap {t}: {v:.3f}" for t, v in views.worst_traps(values))
+        self.h_traps.content = (
+            f'<div id="trap-maps" data-shots="{report["shots"]}" data-name="{name}" style="font-size:12px">'
+            f"<b>{TRAP_MAPS[name]}</b> over {report['shots']} shots (hover a trap for its numbers; red 0, "
+            f"yellow 0.5, green 1, grey: no samples)<br>lowest: {worst or '—'}<br>{svg}</div>"
+        )
+
+    def _draw_assembly(self, report: dict[str, Any]) -> None:
+        shots = list(self._dicts.values())
+        if not shots:
+            return
+        a = views.assembly_series(shots)
+        done = np.isfinite(a["time_to_defect_free_ms"])  # defect-free shots only: a NaN blanks a uPlot plot
+        if done.any():
+            self.p_ttd.data = (a["shot_id"][done], a["time_to_defect_free_ms"][done])
+        if a["shot_id"].size:
+            values, hist = views.cycles_histogram(a["cycles"])
+            self.p_cycles_hist.data = (values, hist)
+        if a["slots"].size:
+            self.p_plan.data = (np.arange(a["slots"].size, dtype=np.float64), a["slots"], a["atoms_moved"], a["lost"])
+        self.h_assembly.content = views.assembly_html(report["assembly"])
+
+    def _draw_history(self) -> None:
+        run = self.d_run.value
+        store = self.service.run_store
+        if store is None or run not in self._runs:
+            return
+        shown = (run, int(self.n_shot.value), int(self.n_cycle.value))
+        if shown == self._history_shown:
+            return
+        try:
+            shot = store.read_shot(run, shown[1])
+        except (OSError, IndexError, KeyError, ValueError) as err:
+            self.h_history.content = f'<div id="history" style="color:#d62728">{html.escape(str(err))}</div>'
+            self._history_shown = shown
+            return
+        download = f"{self.api_url}/api/runs/{run}" if self.api_url else f"/api/runs/{run}"
+        self.h_history.content = views.history_html(shot, shown[2], self._positions, download_url=download)
+        self._history_shown = shown

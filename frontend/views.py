@@ -23,18 +23,35 @@ from typing import Any
 
 import numpy as np
 
+from engine.imaging_calibration import Population, calibrate_threshold, error_probability
 from engine.timing import PAPER_TABLE1_MS, STAGES
+from engine.trap_stats import TrapStatistics
 
 __all__ = [
     "COLOURS",
     "StageRow",
+    "assembly_html",
+    "assembly_series",
     "atom_map_svg",
     "atom_points",
+    "candidate_threshold",
+    "counts_histogram",
+    "cycles_histogram",
     "frame_to_rgb",
+    "heatmap_svg",
+    "history_html",
     "history_series",
+    "imaging_html",
+    "imaging_summary",
+    "lab_stats",
+    "plan_svg",
+    "population_curves",
+    "threshold_series",
+    "worst_traps",
     "paper_column",
     "shot_html",
     "stage_rows",
+    "stats_report",
     "state_colour",
     "status_markdown",
     "timing_html",
@@ -102,24 +119,28 @@ def atom_map_svg(
     ]
     if title:
         parts.append(f"<title>{html.escape(title)}</title>")
-    for (cx, cy), t in zip(cells, tgt):
+    for (cx, cy), t in zip(cells, tgt, strict=True):
         if t:
             parts.append(
                 f'<rect x="{cx * cell:.1f}" y="{cy * cell:.1f}" width="{cell:.1f}" height="{cell:.1f}" '
                 f'fill="{COLOURS["target_bg"]}"/>'
             )
     stroke = max(1.0, 0.14 * cell)
-    for (cx, cy), o, t in zip(cells, occ, tgt):
+    for (cx, cy), o, t in zip(cells, occ, tgt, strict=True):
         x, y = (cx + 0.5) * cell, (cy + 0.5) * cell
         if o and t:
-            parts.append(f'<circle data-state="in_place" cx="{x:.1f}" cy="{y:.1f}" r="{r:.1f}" fill="{COLOURS["in_place"]}"/>')
+            parts.append(
+                f'<circle data-state="in_place" cx="{x:.1f}" cy="{y:.1f}" r="{r:.1f}" fill="{COLOURS["in_place"]}"/>'
+            )
         elif t:
             parts.append(
                 f'<circle data-state="missing" cx="{x:.1f}" cy="{y:.1f}" r="{r - stroke / 2:.1f}" '
                 f'fill="{COLOURS["missing_fill"]}" stroke="{COLOURS["missing"]}" stroke-width="{stroke:.1f}"/>'
             )
         elif o:
-            parts.append(f'<circle data-state="spare" cx="{x:.1f}" cy="{y:.1f}" r="{r:.1f}" fill="{COLOURS["spare"]}"/>')
+            parts.append(
+                f'<circle data-state="spare" cx="{x:.1f}" cy="{y:.1f}" r="{r:.1f}" fill="{COLOURS["spare"]}"/>'
+            )
         else:
             parts.append(
                 f'<circle data-state="empty" cx="{x:.1f}" cy="{y:.1f}" r="{max(1.0, 0.14 * cell):.1f}" '
@@ -320,7 +341,9 @@ def timing_html(rows: Sequence[StageRow], column: str, *, shots: int) -> str:
 # -- history ----------------------------------------------------------------------------------------------------
 
 
-def history_series(shots: Sequence[Mapping[str, Any]], *, window: int = 20) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def history_series(
+    shots: Sequence[Mapping[str, Any]], *, window: int = 20
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(shot_id, success rate in % over the last `window` shots, rearrangement cycles)`` in shot order."""
     if not shots:
         empty = np.zeros(0)
@@ -372,7 +395,8 @@ def state_colour(state: str) -> str:
 # -- camera image -----------------------------------------------------------------------------------------------
 
 _LUT_ANCHORS = np.array(
-    [[0, 0, 4], [40, 11, 84], [101, 21, 110], [159, 42, 99], [212, 72, 66], [245, 125, 21], [250, 193, 39], [252, 255, 164]],
+    [[0, 0, 4], [40, 11, 84], [101, 21, 110], [159, 42, 99], [212, 72, 66], [245, 125, 21], [250, 193, 39],
+     [252, 255, 164]],
     dtype=np.float64,
 )  # an 'inferno'-like ramp
 
@@ -433,3 +457,357 @@ def frame_to_rgb(
     if step > 1:
         note += f", every {step}×{step} px block shown by its brightest pixel"
     return np.ascontiguousarray(rgb), note
+
+
+# -- imaging: the histogram of weighted sums, its two populations and the thresholds ---------------------------
+
+
+def counts_histogram(counts: np.ndarray, *, bins: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """``(bin centres, counts per bin)`` of PSF-weighted sums, over their 0.1-99.9th percentile range."""
+    x = np.asarray(counts, dtype=np.float64).ravel()
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return np.zeros(0), np.zeros(0)
+    lo, hi = np.percentile(x, [0.1, 99.9])
+    hi = max(hi, lo + 1.0)
+    hist, edges = np.histogram(np.clip(x, lo, hi), bins=bins, range=(lo, hi))
+    return 0.5 * (edges[:-1] + edges[1:]), hist.astype(np.float64)
+
+
+def _populations(fit: Mapping[str, float]) -> tuple[Population, Population]:
+    """The empty and the one-atom population of a fit (``imaging_summary(...)["fit"]``)."""
+
+    def population(kind: str) -> Population:
+        return Population(*(np.asarray(fit[f"{m}_{kind}"], dtype=np.float64) for m in ("mean", "std", "skew")))
+
+    return population("empty"), population("atom")
+
+
+def _threshold_row(fit: Mapping[str, float], threshold: float | None) -> dict[str, float | None]:
+    """A threshold and the detection error the fitted populations imply for it (``None``s if no threshold)."""
+    if threshold is None:
+        return {"threshold": None, "error": None}
+    empty, atom = _populations(fit)
+    error = error_probability(np.asarray(threshold, dtype=np.float64), empty, atom, fit["fraction_filled"])
+    return {"threshold": float(threshold), "error": float(error)}
+
+
+#: The most sums a histogram fit uses (an evenly spaced subset beyond): 64x128 traps x 50 shots are 400,000,
+#: and the fit's cost grows with them while its precision stops mattering long before.
+FIT_SAMPLES = 40_000
+
+
+def _fit_sample(counts: np.ndarray) -> np.ndarray:
+    x = np.asarray(counts, dtype=np.float64).ravel()
+    x = x[np.isfinite(x)]
+    return x[:: max(1, math.ceil(x.size / FIT_SAMPLES))]
+
+
+def imaging_summary(
+    counts: np.ndarray, *, current_threshold: float | None, candidate_threshold: float | None = None
+) -> dict[str, Any]:
+    """The two populations fitted to ``counts`` (empty / one atom, as a calibration fits them; at most
+    ``FIT_SAMPLES`` of them) and, for the threshold in use and for a calibration's candidate, the detection
+    error that fit implies.
+
+    ``fit`` is ``None`` when the sums do not split into two populations (too few, or an empty or full array).
+    ``best`` is the fit's own minimum-error threshold."""
+    x = np.asarray(counts, dtype=np.float64).ravel()
+    try:
+        fit = calibrate_threshold(_fit_sample(x))
+    except ValueError:
+        return {"samples": int(x.size), "fit": None, "best": None, "current": None, "candidate": None}
+    populations = {
+        "mean_empty": fit.mean_empty, "std_empty": fit.std_empty, "skew_empty": fit.skew_empty,
+        "mean_atom": fit.mean_atom, "std_atom": fit.std_atom, "skew_atom": fit.skew_atom,
+        "fraction_filled": fit.fraction_filled, "separation": fit.separation,
+    }
+    return {
+        "samples": int(x.size),
+        "fit": populations,
+        "best": _threshold_row(populations, fit.threshold),
+        "current": _threshold_row(populations, current_threshold),
+        "candidate": _threshold_row(populations, candidate_threshold),
+    }
+
+
+def population_curves(
+    centres: np.ndarray, fit: Mapping[str, float] | None, samples: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two fitted populations (``imaging_summary(...)["fit"]``) as expected sums per histogram bin at
+    ``centres`` for a histogram of ``samples`` sums (zeros if there is no fit)."""
+    zero = np.zeros(len(centres))
+    if fit is None or len(centres) < 2:
+        return zero, zero
+    empty, atom = _populations(fit)
+    width = float(centres[1] - centres[0])
+    c = np.asarray(centres, dtype=np.float64)
+    p = fit["fraction_filled"]
+    return (
+        samples * (1 - p) * width * np.exp(empty.logpdf(c)),
+        samples * p * width * np.exp(atom.logpdf(c)),
+    )
+
+
+def threshold_series(centres: np.ndarray, height: float, threshold: float | None) -> np.ndarray:
+    """A marker for a uPlot series on the histogram's x values: a spike of ``height`` in the bin holding the
+    threshold, 0 elsewhere (no NaN: viser hands uPlot typed arrays, and one NaN blanks the whole plot)."""
+    line = np.zeros(len(centres))
+    if threshold is not None and len(centres):
+        line[int(np.argmin(np.abs(np.asarray(centres) - threshold)))] = height
+    return line
+
+
+# -- per-trap maps ----------------------------------------------------------------------------------------------
+
+
+def _heat_colour(value: float) -> str:
+    """0 -> red, 0.5 -> yellow, 1 -> green (NaN: grey)."""
+    if not math.isfinite(value):
+        return "#dddddd"
+    v = min(1.0, max(0.0, value))
+    r = 215 if v < 0.5 else int(215 - (v - 0.5) * 2 * (215 - 44))
+    g = int(40 + v * 2 * (190 - 40)) if v < 0.5 else int(190 - (v - 0.5) * 2 * (190 - 160))
+    return f"#{r:02x}{g:02x}{40:02x}"
+
+
+def heatmap_svg(
+    values: np.ndarray, positions_xy: np.ndarray, *, name: str, samples: np.ndarray | None = None,
+    max_width_px: float = 340, max_cell_px: float = 16,
+) -> str:
+    """One statistic per trap (``float[ny, nx]`` in [0, 1], NaN: no data) drawn where the camera sees each trap;
+    every cell carries a ``<title>`` (hover: trap, row, column, value and samples) and ``data-value``."""
+    v = np.asarray(values, dtype=np.float64)
+    ny, nx = v.shape
+    cells, across, down = trap_layout(positions_xy)
+    if cells.shape[0] != v.size:
+        raise ValueError(f"{v.size} values for {cells.shape[0]} traps")
+    cell = max(2.0, min(max_cell_px, max_width_px / across))
+    width, height = across * cell, down * cell
+    flat = v.ravel()
+    n_samples = None if samples is None else np.asarray(samples).ravel()
+    parts = [
+        f'<svg xmlns="http://www.w3.org/2000/svg" class="heatmap" data-name="{html.escape(name)}" '
+        f'data-rows="{ny}" data-cols="{nx}" width="{width:.0f}" height="{height:.0f}" '
+        f'viewBox="0 0 {width:.1f} {height:.1f}">'
+    ]
+    for t, ((cx, cy), value) in enumerate(zip(cells, flat, strict=True)):
+        shown = "—" if not math.isfinite(value) else f"{value:.3f}"
+        extra = "" if n_samples is None else f", {int(n_samples[t])} samples"
+        parts.append(
+            f'<rect x="{cx * cell:.1f}" y="{cy * cell:.1f}" width="{cell:.1f}" height="{cell:.1f}" '
+            f'fill="{_heat_colour(value)}" data-value="{shown}"><title>trap {t} (row {t // nx}, column {t % nx}): '
+            f"{html.escape(name)} {shown}{extra}</title></rect>"
+        )
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def worst_traps(values: np.ndarray, *, k: int = 3) -> list[tuple[int, float]]:
+    """The ``k`` traps with the lowest value (NaN skipped): ``(flat index, value)``, lowest first."""
+    flat = np.asarray(values, dtype=np.float64).ravel()
+    order = [int(i) for i in np.argsort(np.where(np.isfinite(flat), flat, np.inf)) if math.isfinite(flat[i])]
+    return [(i, float(flat[i])) for i in order[:k]]
+
+
+# -- assembly ---------------------------------------------------------------------------------------------------
+
+
+def assembly_series(shots: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
+    """Assembly figures from shot dicts (``ShotRecord.to_dict()``), oldest first.
+
+    Per shot: ``shot_id``, ``time_to_defect_free_ms`` (when the image showing the defect-free array was in
+    memory, NaN for a shot that did not end defect-free), ``cycles`` (rearrangement cycles). Per rearrangement
+    cycle: ``cycle_shot`` (its shot id), ``lost`` (atoms the next image is missing: atoms before minus after,
+    the observed loss of that cycle whatever its cause), ``slots``, ``steps`` and ``atoms_moved``."""
+    ids, ttd, n_cycles = [], [], []
+    cycle_shot, lost, slots, steps, moved = [], [], [], [], []
+    for shot in shots:
+        cycles = shot["cycles"]
+        ids.append(shot["shot_id"])
+        ok = shot["outcome"] == "success" and cycles
+        ttd.append(float(cycles[-1].get("t_image_ms", np.nan)) if ok else np.nan)
+        n_cycles.append(sum(1 for c in cycles if c.get("n_slots", 0) > 0))
+        for before, after in zip(cycles, cycles[1:], strict=False):
+            if before.get("n_slots", 0) > 0:
+                cycle_shot.append(shot["shot_id"])
+                lost.append(int(before["atoms"]) - int(after["atoms"]))
+                slots.append(before["n_slots"])
+                steps.append(before.get("n_steps", 0))
+                moved.append(before.get("atoms_moved", 0))
+    f = np.float64
+    return {
+        "shot_id": np.array(ids, dtype=f), "time_to_defect_free_ms": np.array(ttd, dtype=f),
+        "cycles": np.array(n_cycles, dtype=f), "cycle_shot": np.array(cycle_shot, dtype=f),
+        "lost": np.array(lost, dtype=f), "slots": np.array(slots, dtype=f), "steps": np.array(steps, dtype=f),
+        "atoms_moved": np.array(moved, dtype=f),
+    }
+
+
+def cycles_histogram(cycles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(0..max, shots with that many rearrangement cycles)``."""
+    c = np.asarray(cycles, dtype=np.int64)
+    if c.size == 0:
+        return np.zeros(1), np.zeros(1)
+    hist = np.bincount(c)
+    return np.arange(hist.size, dtype=np.float64), hist.astype(np.float64)
+
+
+# -- history: a recorded cycle with its plan drawn as arrows ----------------------------------------------------
+
+
+def plan_svg(
+    occupancy: Sequence[str], target: Sequence[str], positions_xy: np.ndarray, moves: np.ndarray | None,
+    *, max_width_px: float = 720, title: str | None = None,
+) -> str:
+    """The atom map of one cycle with its plan over it: an arrow from each moved atom's trap to where the plan
+    leaves it (``moves``: ``int[k, 2]`` source, destination)."""
+    cells, across, _ = trap_layout(positions_xy)
+    svg = atom_map_svg(occupancy, target, positions_xy, max_width_px=max_width_px, title=title)
+    if moves is None or len(moves) == 0:
+        return svg
+    cell = max(3.0, min(22.0, max_width_px / across))
+    arrows = [
+        '<defs><marker id="arrow-head" viewBox="0 0 10 10" refX="9" refY="5" markerWidth="4" markerHeight="4" '
+        'orient="auto-start-reverse"><path d="M0,0 L10,5 L0,10 z" fill="#333"/></marker></defs>'
+    ]
+    for src, dst in np.asarray(moves, dtype=np.int64):
+        (x0, y0), (x1, y1) = (cells[src] + 0.5) * cell, (cells[dst] + 0.5) * cell
+        arrows.append(
+            f'<line class="move" x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="#333" '
+            f'stroke-width="{max(0.8, 0.08 * cell):.1f}" marker-end="url(#arrow-head)"/>'
+        )
+    return svg.replace("</svg>", "".join(arrows) + "</svg>")
+
+
+# -- the statistics as the API serves them (GET /api/stats; the dashboard draws the same numbers) ---------------
+
+
+def _grid(values: np.ndarray) -> list[list[float | None]]:
+    return [[float(v) if math.isfinite(v) else None for v in row] for row in np.asarray(values, dtype=np.float64)]
+
+
+def candidate_threshold(calibrations: Sequence[Mapping[str, Any]], config_digest: str) -> float | None:
+    """The newest threshold calibration of this configuration not applied yet: the candidate to look at."""
+    for cal in reversed(list(calibrations)):
+        if cal.get("kind") == "threshold" and cal.get("config_digest") == config_digest and not cal.get("applied"):
+            return float(cal["threshold"])
+    return None
+
+
+def lab_stats(lab: Any, *, assembly_shots: int = 200) -> dict[str, Any]:
+    """``stats_report`` for the running configuration of a lab service (``GET /api/stats`` answers this; the
+    dashboard draws it): its statistics book, configured threshold, calibrations and recent shots."""
+    config = lab.config
+    digest = config.digest()
+    _, records = lab.shots(limit=assembly_shots, offset=0)
+    shots = [r.to_dict() for r in reversed(records) if r.config_digest == digest]
+    return stats_report(
+        lab.trap_stats.get(digest), shape=(config.array.ny, config.array.nx), config_digest=digest,
+        threshold=config.imaging.threshold, candidate=candidate_threshold(lab.calibrations(), digest), shots=shots,
+    )
+
+
+def stats_report(
+    stats: TrapStatistics | None, *, shape: tuple[int, int], config_digest: str, threshold: float | None,
+    candidate: float | None, shots: Sequence[Mapping[str, Any]], bins: int = 60,
+) -> dict[str, Any]:
+    """Everything the physicist's view shows, as JSON-ready data: per-trap maps (``None`` where undefined),
+    the imaging histogram of the recent first images with its two fitted populations and the error of the
+    threshold in use and of a calibration's candidate, and the assembly figures of ``shots`` (oldest first)."""
+    ny, nx = shape
+    empty_maps = {k: np.full(shape, np.nan) for k in ("loading_probability", "survival", "defect_rate",
+                                                      "disagreement_rate")}
+    maps = stats.maps() if stats is not None else empty_maps
+    trials = stats.samples()["survival_trials"] if stats is not None else np.zeros(shape, dtype=np.int64)
+    recent = stats.recent_counts() if stats is not None else np.zeros(0)
+    centres, hist = counts_histogram(recent, bins=bins)
+    assembly = assembly_series(shots)
+    ttd = assembly["time_to_defect_free_ms"]
+    done = ttd[np.isfinite(ttd)]
+    return {
+        "config_digest": config_digest,
+        "shape": [ny, nx],
+        "shots": stats.shots if stats is not None else 0,
+        "truth_shots": stats.truth_shots if stats is not None else 0,
+        "maps": {name: _grid(values) for name, values in maps.items()},
+        "survival_trials": np.asarray(trials).astype(int).tolist(),
+        "imaging": {
+            "histogram": {"centres": centres.tolist(), "counts": hist.tolist()},
+            **imaging_summary(recent, current_threshold=threshold, candidate_threshold=candidate),
+        },
+        "assembly": {
+            "shots": len(shots),
+            "success_rate": float(np.mean([s["outcome"] == "success" for s in shots])) if shots else None,
+            "time_to_defect_free_ms_median": float(np.median(done)) if done.size else None,
+            "cycles_histogram": cycles_histogram(assembly["cycles"])[1].astype(int).tolist(),
+            "lost_per_cycle_mean": float(assembly["lost"].mean()) if assembly["lost"].size else None,
+            "slots_per_cycle_mean": float(assembly["slots"].mean()) if assembly["slots"].size else None,
+            "atoms_moved_per_cycle_mean": (
+                float(assembly["atoms_moved"].mean()) if assembly["atoms_moved"].size else None
+            ),
+        },
+    }
+
+
+# -- the physicist's view as HTML (the dashboard's tabs) --------------------------------------------------------
+
+
+def _error_text(row: Mapping[str, Any] | None, label: str) -> str:
+    if not row or row.get("threshold") is None:
+        return f"{label}: none"
+    return f"{label}: {row['threshold']:.1f} counts, detection error {row['error']:.1e}"
+
+
+def imaging_html(imaging: Mapping[str, Any]) -> str:
+    """The fit under the histogram: the two populations and the error each threshold implies."""
+    fit = imaging.get("fit")
+    if fit is None:
+        body = "the counts do not split into two populations yet (too few shots, or an empty or full array)"
+        return f'<div id="imaging" data-samples="{imaging["samples"]}" data-fit="0" style="font-size:12px">{body}</div>'
+    current = imaging.get("current") or {}
+    current_txt = (
+        _error_text(current, "threshold in use")
+        if current.get("threshold") is not None
+        else "threshold in use: fitted by the engine when the configuration was applied"
+    )
+    return (
+        f'<div id="imaging" data-samples="{imaging["samples"]}" data-fit="1" style="font-size:12px">'
+        f"{imaging['samples']} sums · empty {fit['mean_empty']:.0f} ± {fit['std_empty']:.0f}, one atom "
+        f"{fit['mean_atom']:.0f} ± {fit['std_atom']:.0f} counts ({fit['fraction_filled']:.0%} filled, "
+        f"{fit['separation']:.1f} σ apart)<br>{html.escape(current_txt)}<br>"
+        f"{html.escape(_error_text(imaging.get('candidate'), 'candidate from the latest calibration'))}<br>"
+        f"{html.escape(_error_text(imaging.get('best'), 'best for these counts'))}</div>"
+    )
+
+
+def assembly_html(assembly: Mapping[str, Any]) -> str:
+    def num(v: float | None, fmt: str) -> str:
+        return "—" if v is None else format(v, fmt)
+
+    return (
+        f'<div id="assembly" data-shots="{assembly["shots"]}" style="font-size:12px">'
+        f"{assembly['shots']} shots: defect-free {num(assembly['success_rate'], '.0%')}, median time to a "
+        f"defect-free array {num(assembly['time_to_defect_free_ms_median'], '.1f')} ms · per rearrangement "
+        f"cycle: {num(assembly['slots_per_cycle_mean'], '.1f')} slots, "
+        f"{num(assembly['atoms_moved_per_cycle_mean'], '.1f')} atoms moved, "
+        f"{num(assembly['lost_per_cycle_mean'], '.2f')} atoms lost (seen missing in the next image)</div>"
+    )
+
+
+def history_html(shot: Mapping[str, Any], cycle: int, positions_xy: np.ndarray, *, download_url: str) -> str:
+    """A recorded shot (``GET /api/runs/{name}/shots/{index}``) at one cycle: its atom map with the plan as
+    arrows, the plan's size and the stage times, and a link to download the run file."""
+    cycles = shot["cycles"]
+    c = cycles[min(max(cycle, 0), len(cycles) - 1)]
+    moves = np.array(c.get("moves") or [], dtype=np.int64).reshape(-1, 2)
+    svg = plan_svg(c["occupancy"], shot["target"], positions_xy, moves, max_width_px=680)
+    stages = " · ".join(f"{k} {v / 1e3:.3f} ms" for k, v in c["stage_us"].items())
+    return (
+        f'<div id="history" data-shot-id="{int(shot["shot_id"])}" data-cycle="{c["index"]}" '
+        f'data-cycles="{len(cycles)}" data-moves="{len(moves)}" style="font-size:12px">'
+        f'<b>shot {int(shot["shot_id"])}</b> ({html.escape(shot["outcome"])}), cycle {c["index"]} of '
+        f"{len(cycles)}: {c['atoms']} atoms, {c['defects']} missing, plan {c['n_slots']} slots, "
+        f"{len(moves)} atoms moved · <a href=\"{html.escape(download_url)}\" download>download the run file</a>"
+        f'<br><span style="color:#555">{html.escape(stages)}</span><br>{svg}</div>'
+    )

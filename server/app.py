@@ -21,7 +21,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from server.errors import register_error_handlers
 from server.hub import LiveHub
-from server.routes import calibration, config, control, live, pages, shots
+from server.routes import calibration, config, control, live, pages, runs, shots, stats
 from server.routes.common import ERR
 from server.security import RequestGuard, require_token
 from server.service import LabService
@@ -120,8 +120,9 @@ def create_app(
     # Without a token the commands carry no security requirement at all, so /openapi.json stays true either way.
     auth = [Depends(require_token)] if token is not None else []
     command_errors = {**_COMMAND_ERRORS, **(_AUTH_ERRORS if token is not None else {})}
-    for reads in (pages.reads, control.reads, config.reads, shots.reads, calibration.reads, live.reads):
+    for reads in (pages.reads, control.reads, config.reads, shots.reads, calibration.reads, live.reads, stats.reads,
+                  runs.reads):
         app.include_router(reads)
-    for commands in (control.commands, config.commands, shots.commands, calibration.commands):
+    for commands in (control.commands, config.commands, shots.commands, calibration.commands, stats.commands):
         app.include_router(commands, dependencies=auth, responses=command_errors)
     return app

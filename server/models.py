@@ -94,6 +94,7 @@ class CycleOut(BaseModel):
     n_steps: int
     underruns: int
     latency_us: float
+    atoms_moved: int = Field(0, description="atoms the cycle's plan moved")
 
 
 class ShotOut(ShotSummary):

@@ -8,7 +8,13 @@ configuration, a one-shot override included, starts a new file, so each file's s
 - per shot (axis 0 grows by one per shot): ``shot_id`` i8, ``outcome`` S16, ``fault`` S256, ``n_cycles`` i2,
   ``duration_s`` f8, ``target_filled`` i1 (1/0, -1 unknown), ``occupancy`` ``bool[shot, cycle, ny, nx]``,
   ``stage_us`` ``f4[shot, cycle, stage]`` (NaN where a stage did not run), ``plan`` ``i4[shot, cycle, 3]``
-  (slots, steps, underruns), ``latency_us`` ``f4[shot, cycle]``. Cycles past ``n_cycles`` are zero.
+  (slots, steps, underruns), ``latency_us`` ``f4[shot, cycle]``, ``counts`` ``f4[shot, cycle, trap]`` (each
+  image's PSF-weighted sums, trap order row-major), ``atoms_moved`` ``i4[shot, cycle]``. Cycles past
+  ``n_cycles`` are zero.
+- ``moves`` ``i4[row, 4]``: one row per atom a plan moved, ``(shot index in this file, cycle, source trap,
+  destination trap)``, appended shot after shot.
+
+Files written before ``counts``, ``atoms_moved`` and ``moves`` existed lack them; the readers below cope.
 
 Why it survives crashes: the file is written in HDF5's single-writer/multiple-reader (SWMR) mode. After the
 datasets are created no new object is ever added; a shot only extends chunked datasets, and each dataset is
@@ -25,10 +31,12 @@ from __future__ import annotations
 import errno
 import json
 import queue
+import re
 import threading
 import time
 from collections import OrderedDict
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -41,7 +49,10 @@ from engine.timing import STAGES
 #: Configurations the store remembers for the shots still queued (see ``RunStore.note_config``).
 CONFIGS_KEPT = 16
 
-__all__ = ["RunStore"]
+__all__ = ["RUN_NAME", "RunStore", "read_run_shot"]
+
+#: What a run file's name looks like (``_new_path``); a client may name no other file.
+RUN_NAME = r"^[0-9]{8}-[0-9]{6}-[0-9]{1,6}\.h5$"
 
 _PER_SHOT_1D = {
     "shot_id": "i8",
@@ -81,11 +92,14 @@ class _RunFile:
             ("stage_us", (c, len(STAGES)), "f4"),
             ("plan", (c, 3), "i4"),
             ("latency_us", (c,), "f4"),
+            ("counts", (c, arr.n_traps), "f4"),
+            ("atoms_moved", (c,), "i4"),
         ):
             rows = max(1, min(chunk, (1 << 20) // max(1, int(np.prod(tail)))))
             self.ds[name] = f.create_dataset(
                 name, shape=(0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(rows, *tail)
             )
+        self.ds["moves"] = f.create_dataset("moves", shape=(0, 4), maxshape=(None, 4), dtype="i4", chunks=(1024, 4))
         f.swmr_mode = True
 
     def append(self, record: ShotRecord) -> None:
@@ -94,6 +108,9 @@ class _RunFile:
         stage_us = np.full((c, len(STAGES)), np.nan, dtype=np.float32)
         plan = np.zeros((c, 3), dtype=np.int32)
         latency = np.zeros(c, dtype=np.float32)
+        counts = np.zeros((c, self.shape[0] * self.shape[1]), dtype=np.float32)
+        atoms_moved = np.zeros(c, dtype=np.int32)
+        moves = []
         for cyc in record.cycles[:c]:
             occupancy[cyc.index] = cyc.occupancy
             for stage, seconds in cyc.stage_s.items():
@@ -101,6 +118,13 @@ class _RunFile:
                     stage_us[cyc.index, STAGES.index(stage)] = seconds * 1e6
             plan[cyc.index] = (cyc.n_slots, cyc.n_steps, cyc.underruns)
             latency[cyc.index] = cyc.latency_s * 1e6
+            if cyc.counts is not None and cyc.counts.size == counts.shape[1]:
+                counts[cyc.index] = cyc.counts
+            if cyc.moves is not None and len(cyc.moves):
+                atoms_moved[cyc.index] = len(cyc.moves)
+                rows = np.empty((len(cyc.moves), 4), dtype=np.int32)
+                rows[:, 0], rows[:, 1], rows[:, 2:] = self.n, cyc.index, cyc.moves
+                moves.append(rows)
         filled = record.truth.get("target_filled")
         values = {
             "shot_id": record.shot_id,
@@ -113,18 +137,95 @@ class _RunFile:
             "stage_us": stage_us,
             "plan": plan,
             "latency_us": latency,
+            "counts": counts,
+            "atoms_moved": atoms_moved,
         }
         i = self.n
         for name, value in values.items():
             ds = self.ds[name]
             ds.resize(i + 1, axis=0)
             ds[i] = value
+        if moves:
+            new = np.concatenate(moves)
+            ds = self.ds["moves"]
+            start = ds.shape[0]
+            ds.resize(start + len(new), axis=0)
+            ds[start:] = new
         for ds in self.ds.values():
             ds.flush()
         self.n = i + 1
 
     def close(self) -> None:
         self.file.close()
+
+
+def _decode(value: Any) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _summary(f: h5py.File, path: Path) -> dict[str, Any]:
+    config = json.loads(_decode(f.attrs["config_json"]))
+    return {
+        "name": path.name,
+        "size_bytes": path.stat().st_size,
+        "created": _decode(f.attrs.get("created", "")),
+        "config_name": config.get("name", ""),
+        "config_digest": _decode(f.attrs["config_digest"]),
+        "shape": list(f["target"].shape),
+        "shots": int(f["shot_id"].shape[0]),
+    }
+
+
+def read_run_shot(f: h5py.File, index: int) -> dict[str, Any]:
+    """Shot ``index`` (0-based, in file order) of an open run file, shaped as ``ShotRecord.to_dict()`` plus,
+    per cycle, ``moves`` (``[[source, destination], ...]``) and ``counts`` (the weighted sums, where recorded).
+    ``IndexError`` if the file holds fewer shots."""
+    n_shots = int(f["shot_id"].shape[0])
+    if not 0 <= index < n_shots:
+        raise IndexError(f"the run file holds {n_shots} shots (0..{n_shots - 1}); there is no shot {index}")
+    stages = json.loads(_decode(f.attrs["stages"]))
+    n_cycles = int(f["n_cycles"][index])
+    occupancy = f["occupancy"][index]
+    stage_us = f["stage_us"][index]
+    plan = f["plan"][index]
+    latency = f["latency_us"][index]
+    counts = f["counts"][index] if "counts" in f else None
+    moves_of: dict[int, list[list[int]]] = {}
+    if "moves" in f and f["moves"].shape[0]:
+        rows = f["moves"][:]
+        for _, cycle, src, dst in rows[rows[:, 0] == index]:
+            moves_of.setdefault(int(cycle), []).append([int(src), int(dst)])
+    target = np.asarray(f["target"][:], dtype=bool)
+    cycles = []
+    for c in range(n_cycles):
+        occ = np.asarray(occupancy[c], dtype=bool)
+        cycles.append({
+            "index": c,
+            "occupancy": ["".join("1" if v else "0" for v in row) for row in occ],
+            "atoms": int(occ.sum()),
+            "defects": int((target & ~occ).sum()),
+            "stage_us": {s: float(v) for s, v in zip(stages, stage_us[c], strict=True) if np.isfinite(v)},
+            "n_slots": int(plan[c, 0]),
+            "n_steps": int(plan[c, 1]),
+            "underruns": int(plan[c, 2]),
+            "latency_us": float(latency[c]),
+            "atoms_moved": len(moves_of.get(c, [])),
+            "moves": moves_of.get(c, []),
+            "counts": None if counts is None else [float(v) for v in counts[c]],
+        })
+    filled = int(f["target_filled"][index])
+    return {
+        "shot_id": int(f["shot_id"][index]),
+        "index": index,
+        "config_digest": _decode(f.attrs["config_digest"]),
+        "algorithm": json.loads(_decode(f.attrs["config_json"]))["solver"]["algorithm"],
+        "target": ["".join("1" if v else "0" for v in row) for row in target],
+        "outcome": _decode(f["outcome"][index]),
+        "fault": _decode(f["fault"][index]) or None,
+        "cycles": cycles,
+        "duration_s": float(f["duration_s"][index]),
+        "truth": {} if filled < 0 else {"target_filled": bool(filled)},
+    }
 
 
 class RunStore:
@@ -184,6 +285,42 @@ class RunStore:
                 self._current.close()
                 self._current = None
 
+    # -- reading run files back (the API's /api/runs) -----------------------------------------------------------
+
+    def path_of(self, name: str) -> Path | None:
+        """The run file called ``name`` in this store's directory, or ``None`` (no such file, or a name that is
+        not a run file's: only names like ``20260101-120000-0.h5`` are looked up, never a path)."""
+        if not re.fullmatch(RUN_NAME, name):
+            return None
+        path = self.directory / name
+        return path if path.is_file() and not path.is_symlink() else None
+
+    def runs(self, *, limit: int = 100) -> list[dict[str, Any]]:
+        """The newest ``limit`` run files, newest first: name, size, creation time, configuration, shots."""
+        names = sorted((p.name for p in self.directory.glob("*.h5") if re.fullmatch(RUN_NAME, p.name)), reverse=True)
+        out = []
+        for name in names[:limit]:
+            try:
+                out.append(self._with_file(name, lambda f, path: _summary(f, path)))
+            except (OSError, KeyError, ValueError):
+                continue  # not a readable run file (being created, or damaged): not listed
+        return out
+
+    def read_shot(self, name: str, index: int) -> dict[str, Any]:
+        """Shot ``index`` of run file ``name`` (see ``read_run_shot``). ``FileNotFoundError``: no such run file;
+        ``IndexError``: no such shot in it."""
+        return self._with_file(name, lambda f, path: read_run_shot(f, index))
+
+    def _with_file(self, name: str, read: Any) -> Any:
+        path = self.path_of(name)
+        if path is None:
+            raise FileNotFoundError(f"no run file {name!r} in the runs directory")
+        with self._lock:  # the file being written is read through the writer's own handle, between shots
+            if self._current is not None and self._current.path.name == name:
+                return read(self._current.file, path)
+        with h5py.File(path, "r", swmr=True) as f:
+            return read(f, path)
+
     def _new_path(self) -> Path:
         stamp = time.strftime("%Y%m%d-%H%M%S")
         n = 0
@@ -218,8 +355,9 @@ class RunStore:
                         config = self._configs.get(record.config_digest)
                     if config is not None and config.sim.faults.disk_full:
                         raise OSError(errno.ENOSPC, "No space left on device (injected: sim.faults.disk_full)")
-                    self._file_for(record.config_digest).append(record)
-                    with self._lock:
+                    run = self._file_for(record.config_digest)
+                    with self._lock:  # readers of the current file (read_run_shot) see whole shots only
+                        run.append(record)
                         self.errors.clear()
                 except (OSError, KeyError, ValueError) as err:
                     with self._lock:

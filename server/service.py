@@ -40,6 +40,7 @@ from engine.config import SystemConfig, deep_merge
 from engine.host import EngineCommands, EngineHost
 from engine.process import EngineProcessDied
 from engine.records import Outcome, ShotRecord
+from engine.trap_stats import StatsBook
 from server.calibration import psf_calibration, threshold_calibration
 from server.files import confine, open_regular
 from server.models import DevicesOut, StatusOut, shot_summary
@@ -201,6 +202,7 @@ class LabService:
         self._calibrations: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self._calibration_ids = itertools.count(1)
         self._listeners: list[Callable[[ShotRecord], None]] = []
+        self.trap_stats = StatsBook()  # per-trap statistics per configuration (GET /api/stats, the dashboard)
         self._want_run = threading.Event()
         self._wake = threading.Event()  # the runner has something to do (or must exit)
         self._closing = threading.Event()
@@ -497,6 +499,11 @@ class LabService:
             recording_error=recording_error,
         )
 
+    @property
+    def run_store(self) -> RunStore | None:
+        """Where shots are recorded (``None``: not recorded), for the run-file routes."""
+        return self._store
+
     def last_record(self) -> ShotRecord | None:
         with self._state_lock:
             return self._history[-1] if self._history else None
@@ -714,6 +721,7 @@ class LabService:
                     self._final_frames.popitem(last=False)
         if self._store is not None:
             self._store.put(record)
+        self.trap_stats.add(record)
         for listener in list(self._listeners):
             try:
                 listener(record)

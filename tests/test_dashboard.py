@@ -6,15 +6,16 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import httpx
 import pytest
+from server_fakes import FakeEngine, example_config
 
 from engine.engine import EngineThread
 from frontend.dashboard import Dashboard
 from server.runstore import RunStore
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
 
 pytest.importorskip("viser")
 
@@ -83,3 +84,53 @@ def test_a_refused_change_is_shown_and_changes_nothing(dash: tuple[Dashboard, La
     dashboard._apply({"solver": {"algorithm": "refuse"}}, "problem")
     assert "problem not applied" in dashboard.h_message.content and "refuse" in dashboard.h_message.content
     assert service.config == before
+
+
+def test_physicist_tabs_show_maps_assembly_and_a_recorded_shot(dash: tuple[Dashboard, LabService]) -> None:
+    dashboard, service = dash
+    records = [service.shot() for _ in range(3)]
+    ny, nx = service.config.array.ny, service.config.array.nx
+    wait_for(lambda: f'data-shots="{len(records)}"' in dashboard.h_traps.content)
+    assert f'data-rows="{ny}" data-cols="{nx}"' in dashboard.h_traps.content
+    assert dashboard.h_traps.content.count("<rect") == ny * nx
+    wait_for(lambda: 'data-shots="3"' in dashboard.h_assembly.content)
+    assert len(dashboard.p_cycles_hist.data[0]) >= 1
+    service.run_store.flush()  # type: ignore[union-attr]
+    dashboard._list_runs()
+    dashboard.d_run.value = dashboard.d_run.options[0]
+    dashboard.n_shot.value = 1
+    dashboard._history_shown = None
+    wait_for(lambda: f'data-shot-id="{records[1].shot_id}"' in dashboard.h_history.content)
+    assert "download the run file" in dashboard.h_history.content
+
+
+def test_new_controls_are_read_only_without_the_token(tmp_path: Path) -> None:
+    """Reset, run-file listing and the shared map/history choices obey the token like every other control."""
+    service = LabService(
+        engine_thread=EngineThread(lambda: FakeEngine(example_config())),  # type: ignore[arg-type, return-value]
+        store=RunStore(tmp_path / "runs"),
+        pause_s=0.01,
+    ).start()
+    dashboard = Dashboard(service, port=0, refresh_s=0.05, token="dash-token")
+    dashboard.start()
+    try:
+        service.shot()
+        digest = service.config.digest()
+        stranger = SimpleNamespace(client_id=41)
+        dashboard._guarded(dashboard._reset_stats)(stranger)
+        assert service.trap_stats.get(digest) is not None  # not reset
+        dashboard._guarded(dashboard._list_runs)(stranger)
+        assert list(dashboard.d_run.options) == ["(none)"]  # not listed
+        dashboard.d_map.value = "loading_probability"
+        dashboard._history_or_back(stranger)
+        assert dashboard.d_map.value == "survival"  # put back
+        assert dashboard.login(7, "dash-token")
+        member = SimpleNamespace(client_id=7)
+        dashboard.d_map.value = "loading_probability"
+        dashboard._history_or_back(member)
+        assert dashboard.d_map.value == "loading_probability"
+        dashboard._guarded(dashboard._reset_stats)(member)
+        assert service.trap_stats.get(digest) is None
+    finally:
+        dashboard.stop()
+        service.close()

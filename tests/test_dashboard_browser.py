@@ -153,6 +153,48 @@ def test_dashboard_shows_a_completed_shot(served: Served, browser: object, tmp_p
         httpx.post(served.api + "/api/run")
 
 
+def test_dashboard_physicist_panels_with_real_data(served: Served, browser: object, tmp_path: Path) -> None:
+    """After a few shots on the simulated lab: the imaging histogram with two fitted populations and the
+    threshold, per-trap maps with the array's shape, the assembly panel, and a recorded shot stepped through."""
+    deadline = time.monotonic() + 120
+    while httpx.get(served.api + "/api/status").json()["shots_done"] < 6:
+        assert time.monotonic() < deadline
+        time.sleep(0.3)
+    stats = httpx.get(served.api + "/api/stats").json()
+    assert stats["shape"] == [1, 64] and stats["imaging"]["fit"] is not None
+    page = browser.new_page(viewport={"width": 1440, "height": 900})  # type: ignore[attr-defined]
+    try:
+        page.goto(served.dashboard)
+        page.wait_for_selector("#atom-map[data-outcome]", timeout=60_000)
+        page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
+        page.get_by_role("tab", name="Traps").click()
+        page.wait_for_selector("#trap-maps svg.heatmap[data-rows='1'][data-cols='64']", timeout=30_000)
+        assert page.eval_on_selector("#trap-maps svg.heatmap", "e => e.querySelectorAll('rect title').length") == 64
+        page.get_by_role("tab", name="Assembly").click()
+        page.wait_for_selector("#assembly[data-shots]:not([data-shots='0'])", timeout=30_000)
+        page.get_by_text("Cycles per shot (histogram)").wait_for(timeout=10_000)
+        page.get_by_role("tab", name="History").click()
+        page.get_by_role("button", name="List run files").click()
+        page.wait_for_selector("#history[data-shot-id]", timeout=30_000)
+        cycles = int(page.eval_on_selector("#history", "e => e.dataset.cycles"))
+        for cycle in range(1, cycles):  # step through the recorded shot's cycles
+            field = page.get_by_role("textbox", name="Cycle", exact=True)
+            field.fill(str(cycle))
+            field.press("Enter")
+            page.wait_for_selector(f"#history[data-cycle='{cycle}']", timeout=20_000)
+        page.get_by_role("tab", name="Imaging").click()
+        page.wait_for_selector("#imaging[data-fit='1']", timeout=30_000)
+        page.get_by_text("threshold in use").first.wait_for(timeout=10_000)
+        page.wait_for_timeout(1500)  # let the plots settle
+        out = tmp_path / "dashboard_physics.png"
+        page.screenshot(path=str(out))
+        assert out.stat().st_size > 20_000
+        if target := os.environ.get("LLRS_DASHBOARD_PHYSICS_PNG"):
+            shutil.copyfile(out, ROOT / target)
+    finally:
+        page.close()
+
+
 def test_dashboard_controls_reach_the_service(served: Served, browser: object) -> None:
     """Stop and one shot from the browser; the API sees the effect."""
     page = browser.new_page(viewport={"width": 1440, "height": 900})  # type: ignore[attr-defined]

@@ -145,7 +145,85 @@ def test_target_presets_are_valid_configurations(example: str) -> None:
     cfg = load_config(EXAMPLES / example)
     presets = target_presets(cfg)
     assert next(iter(presets)) == "as configured" and len(presets) >= 3
-    for label, target in presets.items():
+    for target in presets.values():
         data = cfg.model_dump(mode="json")
         data["target"] = {**data["target"], "count": None, "mask": None, **target}
         SystemConfig.model_validate(data)  # raises if a preset does not fit the array
+
+
+# -- the physicist's view: imaging histogram, per-trap maps, assembly, plans --------------------------------------
+
+
+def test_counts_histogram_bins_every_sum() -> None:
+    centres, hist = views.counts_histogram(np.array([0.0, 1.0, 1.0, 2.0, 10.0]), bins=5)
+    assert hist.sum() == 5 and len(centres) == 5
+    assert np.all(np.diff(centres) > 0)
+
+
+def test_imaging_summary_finds_the_two_populations_and_the_error_of_each_threshold() -> None:
+    rng = np.random.default_rng(1)
+    counts = np.concatenate([rng.normal(100.0, 10.0, 3000), rng.normal(300.0, 20.0, 2000)])
+    summary = views.imaging_summary(counts, current_threshold=150.0, candidate_threshold=110.0)
+    fit = summary["fit"]
+    assert fit["mean_empty"] == pytest.approx(100.0, abs=2.0)
+    assert fit["mean_atom"] == pytest.approx(300.0, abs=3.0)
+    assert fit["fraction_filled"] == pytest.approx(0.4, abs=0.02)
+    # 150 is 5 sigma above the empty mean: a tiny error; 110 (1 sigma) misreads ~16 % of the empty 60 %
+    assert summary["current"]["error"] < 1e-4
+    assert summary["candidate"]["error"] == pytest.approx(0.6 * 0.1587, rel=0.15)
+    assert summary["best"]["error"] <= summary["current"]["error"]
+    # the curves drawn over the histogram hold about every sum
+    centres, hist = views.counts_histogram(counts, bins=80)
+    empty, atom = views.population_curves(centres, summary["fit"], int(hist.sum()))
+    assert empty.sum() + atom.sum() == pytest.approx(hist.sum(), rel=0.05)
+    assert centres[np.argmax(empty)] == pytest.approx(100.0, abs=10.0)
+
+
+def test_imaging_summary_without_two_populations_says_so() -> None:
+    summary = views.imaging_summary(np.full(100, 5.0), current_threshold=3.0)
+    assert summary["fit"] is None and summary["current"] is None
+
+
+def test_threshold_series_marks_the_bin_of_the_threshold() -> None:
+    line = views.threshold_series(np.array([0.0, 1.0, 2.0, 3.0]), 7.0, 2.2)
+    np.testing.assert_array_equal(line, [0.0, 0.0, 7.0, 0.0])
+    assert not views.threshold_series(np.array([0.0, 1.0]), 7.0, None).any()
+
+
+def test_heatmap_draws_each_trap_with_its_number_on_hover() -> None:
+    positions = np.array([[8.0 + 16 * c, 8.0 + 16 * r] for r in range(2) for c in range(3)])
+    values = np.array([[1.0, 0.5, np.nan], [0.0, 1.0, 1.0]])
+    svg = views.heatmap_svg(values, positions, name="survival", samples=np.array([[4, 2, 0], [1, 3, 3]]))
+    assert 'data-rows="2" data-cols="3"' in svg
+    assert re.findall(r'data-value="([^"]+)"', svg) == ["1.000", "0.500", "—", "0.000", "1.000", "1.000"]
+    assert "trap 3 (row 1, column 0): survival 0.000, 1 samples" in svg
+    assert views.worst_traps(values, k=2) == [(3, 0.0), (1, 0.5)]
+
+
+def test_assembly_series_from_shots() -> None:
+    shots = [
+        {"shot_id": 4, "outcome": "success", "cycles": [
+            {"atoms": 10, "n_slots": 12, "n_steps": 20, "atoms_moved": 5, "t_image_ms": 21.0},
+            {"atoms": 9, "n_slots": 3, "n_steps": 2, "atoms_moved": 1, "t_image_ms": 43.5},
+            {"atoms": 9, "n_slots": 0, "n_steps": 0, "atoms_moved": 0, "t_image_ms": 65.0}]},
+        {"shot_id": 5, "outcome": "unsolvable", "cycles": [
+            {"atoms": 4, "n_slots": 0, "n_steps": 0, "t_image_ms": 21.0}]},
+    ]
+    a = views.assembly_series(shots)
+    np.testing.assert_array_equal(a["shot_id"], [4, 5])
+    np.testing.assert_array_equal(a["time_to_defect_free_ms"], [65.0, np.nan])
+    np.testing.assert_array_equal(a["cycles"], [2, 0])
+    np.testing.assert_array_equal(a["lost"], [1, 0])  # 10 -> 9 in the first cycle, 9 -> 9 in the second
+    np.testing.assert_array_equal(a["slots"], [12, 3])
+    np.testing.assert_array_equal(a["atoms_moved"], [5, 1])
+    np.testing.assert_array_equal(a["cycle_shot"], [4, 4])
+    values, hist = views.cycles_histogram(a["cycles"])
+    np.testing.assert_array_equal(values, [0, 1, 2])
+    np.testing.assert_array_equal(hist, [1, 0, 1])
+
+
+def test_plan_svg_draws_an_arrow_per_moved_atom() -> None:
+    svg = views.plan_svg(["11001010"], ["00111100"], chain_positions(), np.array([[0, 2], [1, 3], [6, 5]]))
+    assert svg.count('class="move"') == 3
+    assert states(svg).count("spare") == 3
+    assert views.plan_svg(["11001010"], ["00111100"], chain_positions(), None).count('class="move"') == 0

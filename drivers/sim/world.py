@@ -74,6 +74,7 @@ class WorldCounters:
     lost_dropped: int = 0
     lost_released: int = 0
     lost_imaging: int = 0
+    lost_trap: int = 0  # atoms a lossy trap lost (the ``set_trap_survival`` test hook)
     captured: int = 0  # atoms an empty full-depth tweezer took on arriving over them (not by ramping up)
     dragged: int = 0  # captured atoms that then moved with their tweezer
 
@@ -87,6 +88,7 @@ class WorldCounters:
             + self.lost_dropped
             + self.lost_released
             + self.lost_imaging
+            + self.lost_trap
         )
 
     def as_dict(self) -> dict[str, int]:
@@ -158,6 +160,8 @@ class World:
         self.lossless = True
         self._t_s = clock.now_s() if clock is not None else 0.0
         self._first_hit_s = np.inf  # no hit process yet: ``reconfigure`` starts one
+        self._trap_survival: np.ndarray | None = None  # see set_trap_survival
+        self._trap_loss_rng = np.random.default_rng(0)
         self.reconfigure(config, lossless=lossless)
         _warm_up()
 
@@ -319,6 +323,35 @@ class World:
         c.lost_collision += e[mm.EV_LOST_COLLISION]
         c.lost_dropped += e[mm.EV_LOST_DROPPED]
         c.lost_released += e[mm.EV_LOST_RELEASED]
+        if self._trap_survival is not None:
+            self._lossy_traps()
+
+    # --- test hook: traps that lose atoms (a bad spot of the trap light, a lossy AOD column) -------------
+
+    def set_trap_survival(self, survival: np.ndarray | None, *, seed: int = 0) -> None:
+        """Make some static traps lossy: ``survival`` (``float[ny, nx]``, each in [0, 1]) is the probability
+        that an atom sitting in a trap outlives one waveform slot there; ``None`` makes every trap perfect again.
+
+        For diagnostics: a trap made lossy on purpose must stand out in the per-trap survival statistics. Its
+        random numbers are a stream of their own (from ``seed``), so the world's other streams are unchanged.
+        """
+        if survival is None:
+            self._trap_survival = None
+            return
+        p = np.asarray(survival, dtype=np.float64)
+        if p.shape != (self.ny, self.nx) or not np.all((p >= 0.0) & (p <= 1.0)):
+            raise ValueError(f"trap survival must be float[{self.ny}, {self.nx}] with values in [0, 1]")
+        self._trap_survival = p.copy()
+        self._trap_loss_rng = np.random.default_rng(seed)
+
+    def _lossy_traps(self) -> None:
+        assert self._trap_survival is not None
+        if self._trap_survival.shape != self._static.shape:  # the array changed size: the hook no longer applies
+            self._trap_survival = None
+            return
+        lost = self._static & (self._trap_loss_rng.random(self._static.shape) >= self._trap_survival)
+        self._static &= ~lost
+        self.counters.lost_trap += int(lost.sum())
 
     def _apply_chain(self, tracks: np.ndarray, events: np.ndarray) -> None:
         """The chain conveyor (``move_model.chain_slot``; ``reference``: ``chain_slot_reference``)."""

@@ -189,6 +189,7 @@ class LabService:
         self._state_lock = threading.Lock()  # guards the fields below
         self._history: deque[ShotRecord] = deque(maxlen=history)
         self._by_id: dict[int, ShotRecord] = {}
+        self._latest_with_counts: ShotRecord | None = None
         self._shots = 0
         self._successes = 0
         self._truth_successes: int | None = None
@@ -727,6 +728,15 @@ class LabService:
                 listener(record)
             except Exception:  # a broken listener (a closed dashboard) must never stop the engine
                 pass
+        self._drop_counts_of_older_shots(record)
+
+    def _drop_counts_of_older_shots(self, latest: ShotRecord) -> None:
+        """Held records keep their per-trap counts only while they are the latest shot: the run file and the
+        trap statistics have them by then, and 2000 held shots of 8192 traps would otherwise hold ~200 MB."""
+        previous, self._latest_with_counts = self._latest_with_counts, latest
+        if previous is not None and previous is not latest:
+            for cycle in previous.cycles:
+                cycle.counts = None
 
     def _wait_hardware_trigger(self) -> bool:
         """Armed on a hardware trigger: wait a little for the line on the engine; True if it fired."""

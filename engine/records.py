@@ -36,6 +36,7 @@ class CycleRecord:
     latency_s: float = 0.0  # image in memory -> playback started
     t_start_s: float = 0.0  # the cycle began (camera triggered), seconds after the shot began
     t_image_s: float = 0.0  # its image was in host memory, seconds after the shot began
+    planner: str = ""  # the planner that made this cycle's plan ("" when the cycle planned nothing)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -50,6 +51,7 @@ class CycleRecord:
             "latency_us": self.latency_s * 1e6,
             "t_start_ms": self.t_start_s * 1e3,
             "t_image_ms": self.t_image_s * 1e3,
+            "planner": self.planner,
         }
 
 

@@ -94,6 +94,7 @@ class CycleOut(BaseModel):
     n_steps: int
     underruns: int
     latency_us: float
+    planner: str = Field(default="", description="the planner that made this cycle's plan; empty: none planned")
 
 
 class ShotOut(ShotSummary):

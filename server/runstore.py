@@ -8,7 +8,8 @@ configuration, a one-shot override included, starts a new file, so each file's s
 - per shot (axis 0 grows by one per shot): ``shot_id`` i8, ``outcome`` S16, ``fault`` S256, ``n_cycles`` i2,
   ``duration_s`` f8, ``target_filled`` i1 (1/0, -1 unknown), ``occupancy`` ``bool[shot, cycle, ny, nx]``,
   ``stage_us`` ``f4[shot, cycle, stage]`` (NaN where a stage did not run), ``plan`` ``i4[shot, cycle, 3]``
-  (slots, steps, underruns), ``latency_us`` ``f4[shot, cycle]``. Cycles past ``n_cycles`` are zero.
+  (slots, steps, underruns), ``latency_us`` ``f4[shot, cycle]``, ``planner`` ``S32[shot, cycle]`` (the planner
+  each cycle used; empty: it planned nothing). Cycles past ``n_cycles`` are zero.
 
 Why it survives crashes: the file is written in HDF5's single-writer/multiple-reader (SWMR) mode. After the
 datasets are created no new object is ever added; a shot only extends chunked datasets, and each dataset is
@@ -81,6 +82,7 @@ class _RunFile:
             ("stage_us", (c, len(STAGES)), "f4"),
             ("plan", (c, 3), "i4"),
             ("latency_us", (c,), "f4"),
+            ("planner", (c,), "S32"),  # the planner each cycle used (a strategy switches; empty: none)
         ):
             rows = max(1, min(chunk, (1 << 20) // max(1, int(np.prod(tail)))))
             self.ds[name] = f.create_dataset(
@@ -94,6 +96,7 @@ class _RunFile:
         stage_us = np.full((c, len(STAGES)), np.nan, dtype=np.float32)
         plan = np.zeros((c, 3), dtype=np.int32)
         latency = np.zeros(c, dtype=np.float32)
+        planner = np.zeros(c, dtype="S32")
         for cyc in record.cycles[:c]:
             occupancy[cyc.index] = cyc.occupancy
             for stage, seconds in cyc.stage_s.items():
@@ -101,6 +104,7 @@ class _RunFile:
                     stage_us[cyc.index, STAGES.index(stage)] = seconds * 1e6
             plan[cyc.index] = (cyc.n_slots, cyc.n_steps, cyc.underruns)
             latency[cyc.index] = cyc.latency_s * 1e6
+            planner[cyc.index] = cyc.planner.encode()[:32]
         filled = record.truth.get("target_filled")
         values = {
             "shot_id": record.shot_id,
@@ -113,6 +117,7 @@ class _RunFile:
             "stage_us": stage_us,
             "plan": plan,
             "latency_us": latency,
+            "planner": planner,
         }
         i = self.n
         for name, value in values.items():

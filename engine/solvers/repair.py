@@ -84,6 +84,44 @@ class RepairPlanner(AssignmentPlanner):
         super().__init__(nx, ny, trap_source=trap_source)
         self._plan.algorithm = "repair"
 
+    def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
+        """Assign, reroute, then put repairs whose paths line up into shared groups; returns the steps."""
+        n_steps = super().solve_moves(occupancy, target)
+        self._merge_aligned()
+        return n_steps
+
+    def _merge_aligned(self) -> None:
+        """Straight single-hop repairs that start in one column and cover the same columns (or start in one
+        row and cover the same rows) become one group: one column (row) tone and a row (column) tone per atom,
+        so their product set is exactly their atoms, and they move together. A repair joins an earlier one
+        only if no group in between touches its traps, so running it earlier changes nothing else."""
+        hops, bounds = self._hops, self._groups
+        groups = [hops[bounds[g] : bounds[g + 1]] for g in range(len(bounds) - 1)]
+        merged: list[list[list[tuple[int, int]]]] = []
+        key_of: list[tuple[int, int, int] | None] = []  # (axis, start, end) of a mergeable group
+        touched: list[set[tuple[int, int]]] = []  # traps of every group from each merged group on
+        for group in groups:
+            cells = {site for hop in group for site in hop}
+            key = _straight_key(group[0]) if len(group) == 1 else None
+            joined = False
+            if key is not None:
+                for i in range(len(merged) - 1, -1, -1):
+                    if key_of[i] == key:
+                        if not (touched[i + 1] & cells if i + 1 < len(touched) else set()):
+                            merged[i].append(group[0])
+                            joined = True
+                        break
+                    if touched[i] & cells:
+                        break
+            if not joined:
+                merged.append(list(group))
+                key_of.append(key)
+                touched.append(set())
+            for t in touched:
+                t |= cells
+        self._hops = [hop for group in merged for hop in group]
+        self._groups = [0, *np.cumsum([len(g) for g in merged]).tolist()]
+
     def _pair_costs(self, occ: np.ndarray, free: np.ndarray, holes: np.ndarray) -> np.ndarray:
         steps = super()._pair_costs(occ, free, holes).astype(np.float64)
         if self.objective == "slots":
@@ -95,3 +133,13 @@ class RepairPlanner(AssignmentPlanner):
         atoms = float(np.count_nonzero(occ))
         slots = steps + 2.0  # a pick-up, a slot per site, an implant (batching shares them: an upper bound)
         return self.loss.expected_loss(transfers=2.0 * moved, steps=steps, slots=slots, atoms=atoms)
+
+
+def _straight_key(hop: list[tuple[int, int]]) -> tuple[int, int, int] | None:
+    """(axis, start, end) of a hop along one row (axis 1: its columns) or one column (axis 0: its rows)."""
+    (r0, c0), (r1, c1) = hop[0], hop[-1]
+    if r0 == r1 and len(hop) == abs(c1 - c0) + 1:
+        return (1, c0, c1)
+    if c0 == c1 and len(hop) == abs(r1 - r0) + 1:
+        return (0, r0, r1)
+    return None

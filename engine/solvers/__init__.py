@@ -65,7 +65,9 @@ def _aod_parallel(nx: int, ny: int, trap_source: str, objective: str = "slots") 
     return AODParallelPlanner(nx, ny, objective=objective)
 
 
-def _repair(nx: int, ny: int, trap_source: str, objective: str = "survival", loss: LossWeights | None = None) -> Planner:
+def _repair(
+    nx: int, ny: int, trap_source: str, objective: str = "survival", loss: LossWeights | None = None
+) -> Planner:
     from engine.solvers.repair import RepairPlanner  # deferred on purpose, see above
 
     return RepairPlanner(nx, ny, trap_source=trap_source, objective=objective, loss=loss)

@@ -65,3 +65,16 @@ def test_each_cycle_records_the_planner_the_strategy_chose(engine: Engine) -> No
             assert d["planner"] == expect, (c.index, c.defects)
             seen.add(expect)
     assert seen == {"red-rec", "repair"}  # the loading leaves many holes, the losses of a cycle few
+
+
+def test_bench_planner_specs_set_the_strategy_and_refuse_bad_ones() -> None:
+    from bench.assembly import Cell, cell_config
+
+    cell = Cell(problem="16x32", planner="red-rec>repair@40:survival", loss="0.985/0.985", lifetime_s=6000.0,
+                image_survival=1.0)  # fmt: skip
+    solver = cell_config(cell).solver
+    assert solver.algorithm == "red-rec" and solver.objective == "survival"
+    assert solver.strategy is not None and (solver.strategy.repair, solver.strategy.repair_at_defects) == ("repair", 40)
+    with pytest.raises(ValueError, match="BULK>REPAIR@DEFECTS"):
+        cell_config(Cell(problem="16x32", planner="red-rec>repair", loss="0.985/0.985", lifetime_s=6000.0,
+                         image_survival=1.0))  # fmt: skip

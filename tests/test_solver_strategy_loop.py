@@ -78,3 +78,20 @@ def test_bench_planner_specs_set_the_strategy_and_refuse_bad_ones() -> None:
     with pytest.raises(ValueError, match="BULK>REPAIR@DEFECTS"):
         cell_config(Cell(problem="16x32", planner="red-rec>repair", loss="0.985/0.985", lifetime_s=6000.0,
                          image_survival=1.0))  # fmt: skip
+
+
+def test_the_run_file_keeps_each_cycles_planner(engine: Engine, tmp_path: Path) -> None:
+    import h5py
+
+    from server.runstore import _RunFile
+
+    config = _config(lossless=False, seed=11)
+    engine.apply(config)
+    record = engine.run_shot()
+    run = _RunFile(tmp_path / "run.h5", config)
+    run.append(record)
+    run.close()
+    with h5py.File(tmp_path / "run.h5", "r") as f:
+        stored = [p.decode() for p in f["planner"][0][: len(record.cycles)]]
+    assert stored == [c.planner for c in record.cycles]
+    assert any(stored)

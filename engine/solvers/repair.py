@@ -1,4 +1,4 @@
-"""A repair planner for a few defects: ``"repair"``. Only the atoms needed move, each picked up once.
+"""A repair planner for a few defects: ``"repair"``. Only the atoms needed move, on short paths.
 
 When a bulk planner has done its work, a handful of target traps are empty (atoms lost in the cycle, or
 never loaded) and the spare atoms sit outside the target. Re-planning the whole array (red-rec, aod-parallel)
@@ -21,6 +21,8 @@ a spare atom into each hole and leaves every other atom alone unless the spare a
   the L with fewer atoms on it, and the atoms on it relay (the one nearest the hole moves into it, the next
   into the trap just vacated, back to the spare atom), each one hop over empty traps, each picked up once.
   Atoms off the route are never touched, and the set of occupied traps changes only by spare trap -> hole.
+  An atom is picked up once per repair whose route crosses it: two holes in one column, filled from the same
+  side, relay the atoms nearer the edge twice (a column compression, as red-rec's, would take them once).
   A detour through empty traps would be longer (each extra site a step and a slot of everyone's vacuum
   time) and in a filled band there is rarely one; the survival cost charges the relayed atoms, so a spare
   atom with a clear path wins when it is close.
@@ -107,7 +109,8 @@ class RepairPlanner(AssignmentPlanner):
             if key is not None:
                 for i in range(len(merged) - 1, -1, -1):
                     if key_of[i] == key:
-                        if not (touched[i + 1] & cells if i + 1 < len(touched) else set()):
+                        later = touched[i + 1] if i + 1 < len(touched) else set()
+                        if not later & cells:
                             merged[i].append(group[0])
                             joined = True
                         break

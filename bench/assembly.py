@@ -102,8 +102,24 @@ def cell_config(
         sim.update(survival_transfer=survival[0], survival_step=survival[1])
     base["loop"]["max_cycles"] = max_cycles
     if cell.planner is not None:
-        base["solver"]["algorithm"] = cell.planner
+        base["solver"].update(planner_settings(cell.planner))
     return SystemConfig.model_validate(base)
+
+
+def planner_settings(spec: str) -> dict[str, Any]:
+    """``solver`` settings from a planner spec ``ALGORITHM[>REPAIR@DEFECTS][:OBJECTIVE]``: e.g. ``red-rec``,
+    ``repair:survival``, ``red-rec>repair@64:survival`` (red-rec while the target has more than 64 holes)."""
+    spec, _, objective = spec.partition(":")
+    bulk, _, repair = spec.partition(">")
+    settings: dict[str, Any] = {"algorithm": bulk}
+    if objective:
+        settings["objective"] = objective
+    if repair:
+        name, at, defects = repair.partition("@")
+        if not at or not defects.isdigit():
+            raise ValueError(f"planner {spec!r}: write a strategy as BULK>REPAIR@DEFECTS, e.g. red-rec>repair@64")
+        settings["strategy"] = {"repair": name, "repair_at_defects": int(defects)}
+    return settings
 
 
 def shot_seeds(seed: int, n_shots: int) -> list[int]:
@@ -314,7 +330,11 @@ def _cmd(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg] - argparse's private class
     p = sub.add_parser("assembly", help="closed-loop success and time to a defect-free array, on a dask cluster")
     p.add_argument("--problems", default="32x64", help=f"comma-separated, from {', '.join(PROBLEMS)} (default 32x64)")
-    p.add_argument("--planners", default="example", help="comma-separated planners; 'example': the example's own")
+    p.add_argument(
+        "--planners", default="example",
+        help="comma-separated planners ALGORITHM[>REPAIR@DEFECTS][:OBJECTIVE], e.g. red-rec>repair@64:survival; "
+        "'example': the example's own",
+    )  # fmt: skip
     p.add_argument("--loss", default="0.995/0.999", help=f"comma-separated, from {', '.join(LOSS_MODELS)}")
     p.add_argument("--lifetime", default="6000", help="comma-separated vacuum lifetimes in s (default 6000)")
     p.add_argument("--image-survival", default="1", help="comma-separated survival per image (default 1: lossless)")

@@ -228,14 +228,29 @@ class TargetConfig(_Model):
     mask: list[Annotated[str, Field(max_length=1024)]] | None = Field(default=None, max_length=1024)
 
 
+class SolverStrategyConfig(_Model):
+    """A per-cycle strategy: ``solver.algorithm`` (the bulk planner) while the target has many empty traps,
+    ``repair`` once it has at most ``repair_at_defects``."""
+
+    repair: str = Field(default="repair", min_length=1, max_length=64, description="the planner for few defects")
+    repair_at_defects: Annotated[int, Field(ge=0, le=1_000_000)] = Field(
+        default=64, description="a cycle whose target has at most this many empty traps goes to the repair planner"
+    )
+
+
 class SolverConfig(_Model):
     """Module III: which planner turns occupancy + target into waveform slots."""
 
     algorithm: str = Field(default="exact-1d", min_length=1, max_length=64)
-    objective: Literal["slots", "transfers"] = Field(
+    objective: Literal["slots", "transfers", "survival"] = Field(
         default="slots",
-        description="what the planner minimises where it can choose: waveform slots (time) or pick-ups per "
-        "atom (every transfer risks losing the atom); see docs/benchmarks.md for the trade-off",
+        description="what the planner minimises where it can choose: waveform slots (time), pick-ups per "
+        "atom (every transfer risks losing the atom), or atoms expected lost (survival: transfers, steps and "
+        "vacuum time weighed by sim.survival_transfer, sim.survival_step and sim.vacuum_lifetime_s); see "
+        "docs/benchmarks.md for the trade-off",
+    )
+    strategy: SolverStrategyConfig | None = Field(
+        default=None, description="null: solver.algorithm plans every cycle; set: bulk planner, then repair"
     )
 
 

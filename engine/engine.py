@@ -23,7 +23,7 @@ from engine.host import EngineCommands
 from engine.imaging import Detector, calibration_frames
 from engine.operations import Plan
 from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves
-from engine.solvers import Solver, UnsolvableError
+from engine.solvers import LossWeights, Solver, UnsolvableError
 from engine.streaming import Streamer
 from engine.targets import build_target, target_filled
 from engine.timing import StageTimer
@@ -53,6 +53,24 @@ class ShotWatchdogExpired(RuntimeError):
 
 class InjectedSolverFault(Exception):
     """Raised by the planner when ``sim.faults.solver`` asks for it: stands in for a bug in a planner."""
+
+
+def _solver(config: SystemConfig) -> Solver:
+    """Module III as configured: the planner (or bulk + repair strategy); the survival objective weighs moves by
+    the configured loss model (``sim.survival_*``, ``sim.vacuum_lifetime_s``) at ``waveforms.slot_duration_s``."""
+    sim, strategy = config.sim, config.solver.strategy
+    loss = LossWeights(
+        survival_transfer=sim.survival_transfer,
+        survival_step=sim.survival_step,
+        slot_duration_s=config.waveforms.slot_duration_s,
+        vacuum_lifetime_s=sim.vacuum_lifetime_s,
+    )
+    return Solver(
+        nx=config.array.nx, ny=config.array.ny, algorithm=config.solver.algorithm,
+        trap_source=config.array.trap_source, objective=config.solver.objective, loss=loss,
+        repair_algorithm=None if strategy is None else strategy.repair,
+        repair_at_defects=0 if strategy is None else strategy.repair_at_defects,
+    )  # fmt: skip
 
 
 class _FailingSolver:
@@ -123,10 +141,7 @@ class Engine:
             config=config,
             target=target,
             detector=Detector(config),
-            solver=Solver(
-                nx=arr.nx, ny=arr.ny, algorithm=config.solver.algorithm, trap_source=arr.trap_source,
-                objective=config.solver.objective,
-            ),
+            solver=_solver(config),
             bank=bank,
             streamer=Streamer(config, bank, dev.awg, dev.clock),
             image=np.zeros(dev.camera.frame_shape, dtype=np.uint16),
@@ -202,6 +217,7 @@ class Engine:
         latencies = np.zeros(p.config.loop.max_cycles + 1)
         cycle_times = np.zeros((p.config.loop.max_cycles + 1, 2))  # cycle began, image in memory (clock s)
         plan_stats = np.zeros((p.config.loop.max_cycles + 1, 3), dtype=np.int64)  # slots, steps, underruns
+        planners = [""] * (p.config.loop.max_cycles + 1)  # the planner each cycle used (a strategy switches)
         n_cycles = 0
         gc_was_enabled = gc.isenabled()
         gc.disable()
@@ -209,7 +225,7 @@ class Engine:
             for cycle in range(p.config.loop.max_cycles + 1):
                 p.timer.cycle = cycle
                 n_cycles = cycle + 1
-                outcome = self._cycle(p, cycle, latencies, plan_stats, cycle_times)
+                outcome = self._cycle(p, cycle, latencies, plan_stats, cycle_times, planners)
                 if outcome is not None:
                     record.outcome = outcome
                     break
@@ -244,6 +260,7 @@ class Engine:
                     t_image_s=float(cycle_times[c, 1] - record.t_start_s),
                     counts=p.counts_history[c].copy(),
                     moves=atom_moves(steps) if (steps := p.steps_history[c]) is not None else None,
+                    planner=planners[c],
                 )
             )
         if self.lab is not None:
@@ -279,7 +296,13 @@ class Engine:
         return bool(wait(timeout_s=timeout_s))
 
     def _cycle(
-        self, p: _Pipeline, cycle: int, latencies: np.ndarray, plan_stats: np.ndarray, cycle_times: np.ndarray
+        self,
+        p: _Pipeline,
+        cycle: int,
+        latencies: np.ndarray,
+        plan_stats: np.ndarray,
+        cycle_times: np.ndarray,
+        planners: list[str],
     ) -> Outcome | None:
         dev = self.devices
         timer = p.timer
@@ -311,6 +334,7 @@ class Engine:
         latencies[cycle] = report.t_started_s - t_image
         plan_stats[cycle] = (report.n_slots, plan.n_steps, report.underruns)
         p.steps_history[cycle] = plan.steps.copy()  # after playback started: off the latency path
+        planners[cycle] = plan.algorithm
         return None
 
     def _rehearse(self, p: _Pipeline) -> None:

@@ -59,6 +59,7 @@ class CycleRecord:
     def atoms_moved(self) -> int:
         """Atoms the cycle's plan moved (0 for a cycle without a plan)."""
         return 0 if self.moves is None else int(self.moves.shape[0])
+    planner: str = ""  # the planner that made this cycle's plan ("" when the cycle planned nothing)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -74,6 +75,7 @@ class CycleRecord:
             "t_start_ms": self.t_start_s * 1e3,
             "t_image_ms": self.t_image_s * 1e3,
             "atoms_moved": self.atoms_moved,
+            "planner": self.planner,
         }
 
 

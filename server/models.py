@@ -95,6 +95,7 @@ class CycleOut(BaseModel):
     underruns: int
     latency_us: float
     atoms_moved: int = Field(0, description="atoms the cycle's plan moved")
+    planner: str = Field(default="", description="the planner that made this cycle's plan; empty: none planned")
 
 
 class ShotOut(ShotSummary):

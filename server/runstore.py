@@ -9,12 +9,14 @@ configuration, a one-shot override included, starts a new file, so each file's s
   ``duration_s`` f8, ``target_filled`` i1 (1/0, -1 unknown), ``occupancy`` ``bool[shot, cycle, ny, nx]``,
   ``stage_us`` ``f4[shot, cycle, stage]`` (NaN where a stage did not run), ``plan`` ``i4[shot, cycle, 3]``
   (slots, steps, underruns), ``latency_us`` ``f4[shot, cycle]``, ``counts`` ``f4[shot, cycle, trap]`` (each
-  image's PSF-weighted sums, trap order row-major), ``atoms_moved`` ``i4[shot, cycle]``. Cycles past
-  ``n_cycles`` are zero.
+  image's PSF-weighted sums, trap order row-major), ``atoms_moved`` ``i4[shot, cycle]``, ``planner``
+  ``S32[shot, cycle]`` (the planner each cycle used; empty: it planned nothing). Cycles past ``n_cycles`` are
+  zero.
 - ``moves`` ``i4[row, 4]``: one row per atom a plan moved, ``(shot index in this file, cycle, source trap,
   destination trap)``, appended shot after shot.
 
-Files written before ``counts``, ``atoms_moved`` and ``moves`` existed lack them; the readers below cope.
+Files written before ``counts``, ``atoms_moved``, ``moves`` and ``planner`` existed lack them; the readers below
+cope.
 
 Why it survives crashes: the file is written in HDF5's single-writer/multiple-reader (SWMR) mode. After the
 datasets are created no new object is ever added; a shot only extends chunked datasets, and each dataset is
@@ -94,6 +96,7 @@ class _RunFile:
             ("latency_us", (c,), "f4"),
             ("counts", (c, arr.n_traps), "f4"),
             ("atoms_moved", (c,), "i4"),
+            ("planner", (c,), "S32"),  # the planner each cycle used (a strategy switches; empty: none)
         ):
             rows = max(1, min(chunk, (1 << 20) // max(1, int(np.prod(tail)))))
             self.ds[name] = f.create_dataset(
@@ -111,6 +114,7 @@ class _RunFile:
         counts = np.zeros((c, self.shape[0] * self.shape[1]), dtype=np.float32)
         atoms_moved = np.zeros(c, dtype=np.int32)
         moves = []
+        planner = np.zeros(c, dtype="S32")
         for cyc in record.cycles[:c]:
             occupancy[cyc.index] = cyc.occupancy
             for stage, seconds in cyc.stage_s.items():
@@ -125,6 +129,7 @@ class _RunFile:
                 rows = np.empty((len(cyc.moves), 4), dtype=np.int32)
                 rows[:, 0], rows[:, 1], rows[:, 2:] = self.n, cyc.index, cyc.moves
                 moves.append(rows)
+            planner[cyc.index] = cyc.planner.encode()[:32]
         filled = record.truth.get("target_filled")
         values = {
             "shot_id": record.shot_id,
@@ -139,6 +144,7 @@ class _RunFile:
             "latency_us": latency,
             "counts": counts,
             "atoms_moved": atoms_moved,
+            "planner": planner,
         }
         i = self.n
         for name, value in values.items():

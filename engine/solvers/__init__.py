@@ -19,9 +19,9 @@ from collections.abc import Callable
 import numpy as np
 
 from engine.operations import Operations, Plan
-from engine.solvers.base import Planner, PlannerError, UnsolvableError
+from engine.solvers.base import LossWeights, Planner, PlannerError, UnsolvableError
 
-__all__ = ["ALGORITHMS", "OBJECTIVES", "Planner", "PlannerError", "Solver", "UnsolvableError", "solve"]
+__all__ = ["ALGORITHMS", "LossWeights", "OBJECTIVES", "Planner", "PlannerError", "Solver", "UnsolvableError", "solve"]
 
 
 # The factories import their planner's module when called, on purpose: only the configured planner loads
@@ -65,6 +65,14 @@ def _aod_parallel(nx: int, ny: int, trap_source: str, objective: str = "slots") 
     return AODParallelPlanner(nx, ny, objective=objective)
 
 
+def _repair(
+    nx: int, ny: int, trap_source: str, objective: str = "survival", loss: LossWeights | None = None
+) -> Planner:
+    from engine.solvers.repair import RepairPlanner  # deferred on purpose, see above
+
+    return RepairPlanner(nx, ny, trap_source=trap_source, objective=objective, loss=loss)
+
+
 #: name -> factory(nx, ny, trap_source); the names ``solve`` and ``solver.algorithm`` accept.
 _FACTORIES: dict[str, Callable[[int, int, str], Planner]] = {
     "exact-1d": _exact_1d,
@@ -72,36 +80,68 @@ _FACTORIES: dict[str, Callable[[int, int, str], Planner]] = {
     "red-rec-wide": _red_rec("red-rec-wide"),
     "assignment": _assignment,
     "aod-parallel": _aod_parallel,
+    "repair": _repair,
 }
 
 ALGORITHMS: tuple[str, ...] = tuple(_FACTORIES)
 
-#: Planning objectives (``solver.objective``): the fewest waveform slots, or the fewest pick-ups per atom
-#: (every transfer risks losing the atom). Planners not listed in ``OBJECTIVE_AWARE`` have one way to plan.
-OBJECTIVES: tuple[str, ...] = ("slots", "transfers")
-OBJECTIVE_AWARE: frozenset[str] = frozenset({"aod-parallel"})
+#: Planning objectives (``solver.objective``): the fewest waveform slots, the fewest pick-ups per atom (every
+#: transfer risks losing the atom), or the fewest atoms expected lost (``survival``: transfers, steps and
+#: vacuum time weighed by the loss model, ``LossWeights``). Planners not listed in ``OBJECTIVE_AWARE`` have one
+#: way to plan. aod-parallel weighs no costs: its plan for ``survival`` is its ``transfers`` plan (of its two,
+#: the one that disturbs fewer atoms).
+OBJECTIVES: tuple[str, ...] = ("slots", "transfers", "survival")
+OBJECTIVE_AWARE: frozenset[str] = frozenset({"aod-parallel", "repair"})
+
+
+def _build(algorithm: str, nx: int, ny: int, trap_source: str, objective: str, loss: LossWeights | None) -> Planner:
+    factory = _FACTORIES.get(algorithm)
+    if factory is None:
+        raise PlannerError(f"solver.algorithm {algorithm!r} is not known; choose one of {', '.join(ALGORITHMS)}")
+    try:
+        if algorithm == "repair":
+            return _repair(nx, ny, trap_source, objective, loss)
+        if algorithm in OBJECTIVE_AWARE:
+            own = "transfers" if objective == "survival" else objective
+            return factory(nx, ny, trap_source, own)  # type: ignore[call-arg]  # objective-aware factory
+        return factory(nx, ny, trap_source)
+    except PlannerError:
+        raise
+    except ValueError as err:
+        raise PlannerError(f"solver.algorithm {algorithm!r}: {err}") from None
 
 
 class Solver:
-    """The engine's Module III: the configured planner behind one stable interface."""
+    """The engine's Module III: the configured planner behind one stable interface.
+
+    With ``repair_algorithm`` set, a per-cycle strategy: ``algorithm`` (the bulk planner) while the target has
+    more than ``repair_at_defects`` empty traps, ``repair_algorithm`` from then on (``StrategyPlanner``). The
+    plan's ``algorithm`` names the planner that made it. ``loss`` weighs the ``survival`` objective.
+    """
 
     def __init__(
-        self, *, nx: int, ny: int, algorithm: str, trap_source: str = "slm", objective: str = "slots"
+        self,
+        *,
+        nx: int,
+        ny: int,
+        algorithm: str,
+        trap_source: str = "slm",
+        objective: str = "slots",
+        loss: LossWeights | None = None,
+        repair_algorithm: str | None = None,
+        repair_at_defects: int = 0,
     ) -> None:
-        factory = _FACTORIES.get(algorithm)
-        if factory is None:
-            raise PlannerError(f"solver.algorithm {algorithm!r} is not known; choose one of {', '.join(ALGORITHMS)}")
         if objective not in OBJECTIVES:
             raise PlannerError(f"solver.objective {objective!r} is not known; choose one of {', '.join(OBJECTIVES)}")
-        try:
-            if algorithm in OBJECTIVE_AWARE:
-                self.planner = factory(nx, ny, trap_source, objective)  # type: ignore[call-arg]
-            else:
-                self.planner = factory(nx, ny, trap_source)
-        except PlannerError:
-            raise
-        except ValueError as err:
-            raise PlannerError(f"solver.algorithm {algorithm!r}: {err}") from None
+        self.planner = _build(algorithm, nx, ny, trap_source, objective, loss)
+        if repair_algorithm is not None:
+            from engine.solvers.strategy import StrategyPlanner  # deferred: only a strategy needs it
+
+            repair = _build(repair_algorithm, nx, ny, trap_source, objective, loss)
+            try:
+                self.planner = StrategyPlanner(self.planner, repair, repair_at_defects=repair_at_defects)
+            except ValueError as err:
+                raise PlannerError(f"solver.strategy: {err}") from None
         self.algorithm = algorithm
         self.trap_source = trap_source
         self.objective = objective

@@ -97,7 +97,7 @@ class AssignmentPlanner:
         self._hops = []
         self._groups = [0]
         if len(holes):
-            cost = np.abs(free[:, None, 0] - holes[None, :, 0]) + np.abs(free[:, None, 1] - holes[None, :, 1])
+            cost = self._pair_costs(occ, free, holes)
             rows, cols = linear_sum_assignment(cost.T)  # holes x free atoms: every hole gets an atom
             pairs = [(tuple(free[c]), tuple(holes[r])) for r, c in zip(rows, cols)]
             pairs.sort(key=lambda st: abs(st[0][0] - st[1][0]) + abs(st[0][1] - st[1][1]))
@@ -110,6 +110,10 @@ class AssignmentPlanner:
                 occ[dest] = True
         self._solved = True
         return sum(len(h) - 1 for h in self._hops)
+
+    def _pair_costs(self, occ: np.ndarray, free: np.ndarray, holes: np.ndarray) -> np.ndarray:
+        """``[free atoms, holes]`` cost the assignment minimises: the Manhattan distance (one-site steps)."""
+        return np.abs(free[:, None, 0] - holes[None, :, 0]) + np.abs(free[:, None, 1] - holes[None, :, 1])
 
     def _route(self, occ: np.ndarray, source: tuple[int, int], dest: tuple[int, int]) -> list[tuple[int, int]]:
         """The L-shaped path (both corners tried) that crosses fewer atoms; inclusive of both ends."""

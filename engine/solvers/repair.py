@@ -1,0 +1,152 @@
+"""A repair planner for a few defects: ``"repair"``. Only the atoms needed move, on short paths.
+
+When a bulk planner has done its work, a handful of target traps are empty (atoms lost in the cycle, or
+never loaded) and the spare atoms sit outside the target. Re-planning the whole array (red-rec, aod-parallel)
+moves tens of atoms per hole; every pick-up, implant and one-site step can lose one. The repair planner moves
+a spare atom into each hole and leaves every other atom alone unless the spare atom's path needs it:
+
+- **Which spare atom fills which hole.** A minimum-cost assignment of spare atoms to holes, where the cost of a
+  pair is what its move risks (``objective``):
+
+  - ``slots``: one-site steps (the Manhattan distance), as the assignment planner;
+  - ``transfers``: atoms picked up (the spare atom plus every atom on its path), steps as the tie-break;
+  - ``survival``: expected atoms lost, ``transfers x -ln p_transfer + steps x -ln p_step + time x atoms /
+    lifetime`` (a pick-up and an implant per atom moved, a step per site, ``slot_duration_s`` per site of
+    path), from the configured loss model.
+
+  Atoms on a path are counted on both L-shaped routes (row first or column first) with prefix sums over the
+  occupancy, so the cost of every (spare atom, hole) pair costs O(1).
+- **Paths in the lattice model.** A loaded tweezer may not end a slot over an occupied trap, so an atom cannot
+  pass one. We chose to **move blocking atoms as part of the plan**, not to detour around them: the route is
+  the L with fewer atoms on it, and the atoms on it relay (the one nearest the hole moves into it, the next
+  into the trap just vacated, back to the spare atom), each one hop over empty traps, each picked up once.
+  Atoms off the route are never touched, and the set of occupied traps changes only by spare trap -> hole.
+  An atom is picked up once per repair whose route crosses it: two holes in one column, filled from the same
+  side, relay the atoms nearer the edge twice (a column compression, as red-rec's, would take them once).
+  A detour through empty traps would be longer (each extra site a step and a slot of everyone's vacuum
+  time) and in a filled band there is rarely one; the survival cost charges the relayed atoms, so a spare
+  atom with a clear path wins when it is close.
+- **Batching.** The hops share product sets of AOD tweezers wherever their rows and columns line up
+  (``assignment_batching``: bystanders, captures and overtaking are checked), so several holes are repaired
+  in the same slots.
+
+Not a bulk planner: on a freshly loaded 32 x 64 array (about 410 holes in a 32 x 32 band) it relays ~3,500
+atoms in 3,500-4,200 slots, beyond the examples' AWG layout (4,064 slots) in about 1 shot in 10, where red-rec
+takes ~950 pick-ups in ~800 slots. Use it behind a bulk planner (``solver.strategy``).
+
+Everything but the pair cost is the assignment planner's (``engine/solvers/assignment.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from engine.solvers.assignment import AssignmentPlanner
+from engine.solvers.base import LossWeights
+
+__all__ = ["RepairPlanner", "route_atoms"]
+
+
+def route_atoms(occ: np.ndarray, free: np.ndarray, holes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Atoms strictly between each spare atom and each hole on the two L routes, ``int[free, holes]`` each:
+    row first (along the spare atom's row, then the hole's column) and column first."""
+    occ_i = occ.astype(np.int64)
+    ny, nx = occ.shape
+    row_cum = np.zeros((ny, nx + 1), dtype=np.int64)
+    row_cum[:, 1:] = np.cumsum(occ_i, axis=1)
+    col_cum = np.zeros((ny + 1, nx), dtype=np.int64)
+    col_cum[1:, :] = np.cumsum(occ_i, axis=0)
+    r0, c0 = free[:, 0:1], free[:, 1:2]  # [free, 1]
+    r1, c1 = holes[None, :, 0], holes[None, :, 1]  # [1, holes]
+
+    def along_row(r: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return row_cum[r, np.maximum(a, b) + 1] - row_cum[r, np.minimum(a, b)]
+
+    def along_col(c: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return col_cum[np.maximum(a, b) + 1, c] - col_cum[np.minimum(a, b), c]
+
+    # each segment counts its ends; take out the spare atom, the corner (counted twice) and the hole
+    row_first = along_row(r0, c0, c1) + along_col(c1, r0, r1) - occ_i[r0, c0] - occ_i[r0, c1] - occ_i[r1, c1]
+    col_first = along_col(c0, r0, r1) + along_row(r1, c0, c1) - occ_i[r0, c0] - occ_i[r1, c0] - occ_i[r1, c1]
+    return row_first, col_first
+
+
+class RepairPlanner(AssignmentPlanner):
+    """Fills the holes of any target mask from the spare atoms, moving as few atoms as the paths allow."""
+
+    def __init__(
+        self,
+        nx: int,
+        ny: int,
+        *,
+        trap_source: str = "slm",
+        objective: str = "survival",
+        loss: LossWeights | None = None,
+    ) -> None:
+        if objective not in ("slots", "transfers", "survival"):
+            raise ValueError(f"objective must be slots, transfers or survival (got {objective!r})")
+        self.objective = objective
+        self.loss = loss or LossWeights()
+        super().__init__(nx, ny, trap_source=trap_source)
+        self._plan.algorithm = "repair"
+
+    def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
+        """Assign, reroute, then put repairs whose paths line up into shared groups; returns the steps."""
+        n_steps = super().solve_moves(occupancy, target)
+        self._merge_aligned()
+        return n_steps
+
+    def _merge_aligned(self) -> None:
+        """Straight single-hop repairs that start in one column and cover the same columns (or start in one
+        row and cover the same rows) become one group: one column (row) tone and a row (column) tone per atom,
+        so their product set is exactly their atoms, and they move together. A repair joins an earlier one
+        only if no group in between touches its traps, so running it earlier changes nothing else."""
+        hops, bounds = self._hops, self._groups
+        groups = [hops[bounds[g] : bounds[g + 1]] for g in range(len(bounds) - 1)]
+        merged: list[list[list[tuple[int, int]]]] = []
+        key_of: list[tuple[int, int, int] | None] = []  # (axis, start, end) of a mergeable group
+        touched: list[set[tuple[int, int]]] = []  # traps of every group from each merged group on
+        for group in groups:
+            cells = {site for hop in group for site in hop}
+            key = _straight_key(group[0]) if len(group) == 1 else None
+            joined = False
+            if key is not None:
+                for i in range(len(merged) - 1, -1, -1):
+                    if key_of[i] == key:
+                        later = touched[i + 1] if i + 1 < len(touched) else set()
+                        if not later & cells:
+                            merged[i].append(group[0])
+                            joined = True
+                        break
+                    if touched[i] & cells:
+                        break
+            if not joined:
+                merged.append(list(group))
+                key_of.append(key)
+                touched.append(set())
+            for t in touched:
+                t |= cells
+        self._hops = [hop for group in merged for hop in group]
+        self._groups = [0, *np.cumsum([len(g) for g in merged]).tolist()]
+
+    def _pair_costs(self, occ: np.ndarray, free: np.ndarray, holes: np.ndarray) -> np.ndarray:
+        steps = super()._pair_costs(occ, free, holes).astype(np.float64)
+        if self.objective == "slots":
+            return steps
+        blockers = np.minimum(*route_atoms(occ, free, holes))
+        moved = 1 + blockers  # the spare atom and the atoms it relays, each picked up and implanted once
+        if self.objective == "transfers":
+            return moved + steps / (steps.max() + 1.0)  # fewest atoms moved, then the shortest
+        atoms = float(np.count_nonzero(occ))
+        slots = steps + 2.0  # a pick-up, a slot per site, an implant (batching shares them: an upper bound)
+        return self.loss.expected_loss(transfers=2.0 * moved, steps=steps, slots=slots, atoms=atoms)
+
+
+def _straight_key(hop: list[tuple[int, int]]) -> tuple[int, int, int] | None:
+    """(axis, start, end) of a hop along one row (axis 1: its columns) or one column (axis 0: its rows)."""
+    (r0, c0), (r1, c1) = hop[0], hop[-1]
+    if r0 == r1 and len(hop) == abs(c1 - c0) + 1:
+        return (1, c0, c1)
+    if c0 == c1 and len(hop) == abs(r1 - r0) + 1:
+        return (0, r0, r1)
+    return None

@@ -166,7 +166,8 @@ def run_chunk(config_json: str, seeds: Sequence[int]) -> list[dict[str, Any]]:
             record = engine.run_shot()
             after = lab.world.counters.as_dict()
             lost = {cause: after[f"lost_{cause}"] - before[f"lost_{cause}"] for cause in LOSS_CAUSES}
-            out.append(_shot_summary(record, lost, n_target, config.sim.vacuum_lifetime_s))
+            lifetime_s = math.inf if config.sim.lossless else config.sim.vacuum_lifetime_s  # lossless: no vacuum loss
+            out.append(_shot_summary(record, lost, n_target, lifetime_s))
         return out
     finally:
         devices.close()

@@ -421,9 +421,8 @@ class DevicesConfig(_Model):
         )
         hs_speed_index: Annotated[int, Field(ge=0, le=64)] = Field(default=0, description="horizontal shift speed index")
         vs_speed_index: Annotated[int, Field(ge=0, le=64)] | None = Field(
-            default=None, description="vertical shift speed index; null = the SDK's fastest recommended speed"
+            default=None, description="vertical shift speed index; null = the index of camera.vertical_shift_s"
         )
-        vs_amplitude: Annotated[int, Field(ge=0, le=4)] = 0
         preamp_gain_index: Annotated[int, Field(ge=0, le=64)] = 0
         em_gain_mode: Literal["dac255", "dac4095", "linear", "real"] = "real"
         frame_transfer: bool = True

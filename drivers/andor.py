@@ -7,7 +7,10 @@ saying what to install. Every SDK call returns its status (``DRV_SUCCESS = 20002
 
 What the camera is set to (values are the SDK2 manual's): image read mode (4), acquisition mode "run till
 abort" (5) so that every trigger yields a frame without re-arming, the EMCCD output amplifier (0), the EM
-gain mode and gain, horizontal/vertical shift speeds, vertical clock amplitude, pre-amp gain, frame transfer,
+gain mode and gain, horizontal/vertical shift speeds (the camera config's ``horizontal_rate_hz`` and
+``vertical_shift_s``: the vertical index is looked up from the speed unless ``devices.andor.vs_speed_index``
+names it, and either index must give the configured speed), the vertical clock voltage amplitude
+(``camera.vertical_clock_voltage``), pre-amp gain, frame transfer,
 baseline clamp, the ROI and binning (``SetImage``: 1-based inclusive sensor coordinates; or isolated crop
 mode), exposure, trigger mode (external 1, software 10, internal 0), shutter, cooler and set point, and
 Camera Link output when frames go through a grabber.
@@ -89,6 +92,11 @@ INSTALL_SDK = (
     "install Andor SDK2 for your platform (it provides libandor and the pyAndorSDK2 Python wrapper; "
     "pip install the wrapper from the SDK's python folder), then check with 'llrs devices'"
 )
+
+
+def _same_speed(a: float, b: float) -> bool:
+    """The SDK answers speeds as 32-bit floats (4.33 us reads 4.3299999): equal to 1 part in 1e4."""
+    return abs(a - b) <= 1e-4 * max(abs(a), abs(b))
 
 
 def status_name(code: int) -> str:
@@ -313,13 +321,18 @@ class AndorCamera:
         ok(sdk.SetFrameTransferMode(1 if s.frame_transfer else 0), "SetFrameTransferMode")
         ok(sdk.SetOutputAmplifier(AMP_EMCCD), "SetOutputAmplifier")
         ok(sdk.SetHSSpeed(AMP_EMCCD, s.hs_speed_index), "SetHSSpeed", hint="devices.andor.hs_speed_index")
-        if s.vs_speed_index is None:
-            ret, vs_index, _speed_us = sdk.GetFastestRecommendedVSSpeed()
-            ok(ret, "GetFastestRecommendedVSSpeed")
-        else:
-            vs_index = s.vs_speed_index
+        self._check_horizontal_rate(config.horizontal_rate_hz, s.hs_speed_index)
+        vs_index = self._vertical_shift_index(config.vertical_shift_s) if s.vs_speed_index is None else s.vs_speed_index
         ok(sdk.SetVSSpeed(vs_index), "SetVSSpeed", hint="devices.andor.vs_speed_index")
-        ok(sdk.SetVSAmplitude(s.vs_amplitude), "SetVSAmplitude", hint="devices.andor.vs_amplitude")
+        ret, vs_us = sdk.GetVSSpeed(vs_index)
+        ok(ret, "GetVSSpeed")
+        if not _same_speed(vs_us * 1e-6, config.vertical_shift_s):
+            raise DeviceError(
+                f"Andor camera: devices.andor.vs_speed_index {vs_index} shifts rows in {vs_us:g} us but "
+                f"camera.vertical_shift_s is {config.vertical_shift_s * 1e6:g} us (the readout model and the "
+                "simulated camera use it); make them agree, or leave vs_speed_index null to pick it from the camera"
+            )
+        ok(sdk.SetVSAmplitude(config.vertical_clock_voltage), "SetVSAmplitude", hint="camera.vertical_clock_voltage")
         ok(sdk.SetPreAmpGain(s.preamp_gain_index), "SetPreAmpGain", hint="devices.andor.preamp_gain_index")
         if not self._em_gain_capability & EM_GAIN_CAPABILITY[s.em_gain_mode]:
             modes = [m for m, bit in EM_GAIN_CAPABILITY.items() if self._em_gain_capability & bit]
@@ -440,6 +453,34 @@ class AndorCamera:
             self._ok(ret, "GetMostRecentImage16")
         # the wrapper returns int16 (it allocates c_short); the camera's counts are unsigned 16-bit: same bits
         np.copyto(self._out_flat, image.view(np.uint16))
+
+    def _vertical_shift_index(self, shift_s: float) -> int:
+        """The SDK's index of the vertical shift speed ``shift_s`` (``GetVSSpeed`` answers in microseconds)."""
+        sdk = self._sdk
+        ret, n = sdk.GetNumberVSSpeeds()
+        self._ok(ret, "GetNumberVSSpeeds")
+        speeds_us = []
+        for index in range(n):
+            ret, speed_us = sdk.GetVSSpeed(index)
+            self._ok(ret, "GetVSSpeed")
+            if _same_speed(speed_us * 1e-6, shift_s):
+                return index
+            speeds_us.append(f"{speed_us:g}")
+        raise DeviceError(
+            f"Andor camera: camera.vertical_shift_s = {shift_s * 1e6:g} us is not a vertical shift speed of this "
+            f"camera; it has {', '.join(speeds_us)} us"
+        )
+
+    def _check_horizontal_rate(self, rate_hz: float, index: int) -> None:
+        """The readout rate at ``index`` of the EM amplifier must be ``camera.horizontal_rate_hz``."""
+        ret, rate_mhz = self._sdk.GetHSSpeed(0, AMP_EMCCD, index)
+        self._ok(ret, "GetHSSpeed", hint="devices.andor.hs_speed_index")
+        if not _same_speed(rate_mhz * 1e6, rate_hz):
+            raise DeviceError(
+                f"Andor camera: devices.andor.hs_speed_index {index} reads {rate_mhz:g} MHz but "
+                f"camera.horizontal_rate_hz is {rate_hz / 1e6:g} MHz (the readout model and the simulated camera "
+                "use it); set the index of that rate or change the rate"
+            )
 
     @staticmethod
     def _ok(ret: int, call: str, *, hint: str = "") -> None:

@@ -179,8 +179,17 @@ class CameraConfig(_Model):
     psf_sigma_px: Annotated[float, Field(gt=0, le=100)] = 1.2
     exposure_s: Annotated[float, Field(gt=0, le=60)] = 0.020
     em_gain: Annotated[float, Field(ge=1, le=1000)] = 300.0
-    vertical_shift_s: Annotated[float, Field(gt=0, le=1e-3)] = 4.33e-6
-    horizontal_rate_hz: Annotated[float, Field(ge=1e3, le=1e10)] = 30e6
+    vertical_shift_s: Annotated[float, Field(gt=0, le=1e-3)] = Field(
+        default=4.33e-6, description="time per row shift (iXon Ultra 888: 0.6, 1.13, 2.2 or 4.33 us)"
+    )
+    vertical_clock_voltage: Annotated[int, Field(ge=0, le=4)] = Field(
+        default=0,
+        description="vertical clock voltage amplitude above normal (Andor's 'Normal', '+1'..'+4'): fast vertical "
+        "shifts need it to move all the charge, and every step raises the clock-induced charge",
+    )
+    horizontal_rate_hz: Annotated[float, Field(ge=1e3, le=1e10)] = Field(
+        default=30e6, description="pixel readout rate (iXon Ultra 888 EM amplifier: 30, 20, 10 or 1 MHz)"
+    )
     transfer_bytes_per_s: Annotated[float, Field(ge=1e3, le=1e12)] = 1.431e9
     timeout_s: Annotated[float, Field(gt=0, le=600)] = 0.6
 
@@ -478,9 +487,8 @@ class DevicesConfig(_Model):
         )
         hs_speed_index: Annotated[int, Field(ge=0, le=64)] = Field(default=0, description="horizontal shift speed index")
         vs_speed_index: Annotated[int, Field(ge=0, le=64)] | None = Field(
-            default=None, description="vertical shift speed index; null = the SDK's fastest recommended speed"
+            default=None, description="vertical shift speed index; null = the index of camera.vertical_shift_s"
         )
-        vs_amplitude: Annotated[int, Field(ge=0, le=4)] = 0
         preamp_gain_index: Annotated[int, Field(ge=0, le=64)] = 0
         em_gain_mode: Literal["dac255", "dac4095", "linear", "real"] = "real"
         frame_transfer: bool = True

@@ -73,6 +73,8 @@ SIGNATURES: dict[str, tuple[tuple[str, str], ...]] = {
     "SetAcquisitionMode": (("mode", "int"),), "SetFrameTransferMode": (("mode", "int"),),
     "SetOutputAmplifier": (("typ", "int"),), "SetHSSpeed": (("typ", "int"), ("index", "int")),
     "GetFastestRecommendedVSSpeed": (), "SetVSSpeed": (("index", "int"),), "SetVSAmplitude": (("index", "int"),),
+    "GetNumberVSSpeeds": (), "GetVSSpeed": (("index", "int"),),
+    "GetHSSpeed": (("channel", "int"), ("typ", "int"), ("index", "int")),
     "SetPreAmpGain": (("index", "int"),), "SetEMGainMode": (("mode", "int"),), "GetEMGainRange": (),
     "SetEMAdvanced": (("state", "int"),), "SetEMCCDGain": (("gain", "int"),), "GetEMCCDGain": (),
     "SetBaselineClamp": (("state", "int"),), "SetCameraLinkMode": (("mode", "int"),),
@@ -87,6 +89,9 @@ SIGNATURES: dict[str, tuple[tuple[str, str], ...]] = {
     "GetTotalNumberImagesAcquired": (), "WaitForAcquisitionTimeOut": (("iTimeOutMs", "int"),),
     "GetMostRecentImage16": (("size", "int"),), "ShutDown": (),
 }
+#: The iXon Ultra 888's vertical shift speeds (us, as 32-bit floats come back) and EM-amplifier readout rates
+VS_SPEEDS_US = (0.6, 1.13, 2.2, 4.3299999)
+HS_SPEEDS_MHZ = (30.0, 20.0, 10.0, 1.0)
 _CONVERT: dict[str, Callable[[Any], Any]] = {"int": ctypes.c_int, "float": ctypes.c_float, "str": str.encode}
 
 
@@ -357,6 +362,10 @@ _IMPL: dict[str, Callable[..., Any]] = {
     "GetFastestRecommendedVSSpeed": lambda f: (DRV_SUCCESS, 3, 4.33),
     "SetVSSpeed": _setter("SetVSSpeed", lambda f, a: DRV_SUCCESS if 0 <= a[0] < 4 else DRV_P1INVALID),
     "SetVSAmplitude": _setter("SetVSAmplitude"),
+    "GetNumberVSSpeeds": lambda f: (DRV_SUCCESS, len(VS_SPEEDS_US)),
+    "GetVSSpeed": lambda f, i: (DRV_SUCCESS, VS_SPEEDS_US[i]) if 0 <= i < len(VS_SPEEDS_US) else (DRV_P1INVALID, 0.0),
+    "GetHSSpeed": lambda f, ch, typ, i: (DRV_SUCCESS, HS_SPEEDS_MHZ[i]) if 0 <= i < len(HS_SPEEDS_MHZ)
+    else (DRV_P1INVALID, 0.0),
     "SetPreAmpGain": _setter("SetPreAmpGain"),
     "GetCapabilities": _capabilities,
     "GetTemperatureRange": lambda f: (DRV_SUCCESS, -120, 30),

@@ -85,20 +85,21 @@ def test_open_initializes_and_starts_cooling_that_outlives_shutdown() -> None:
 
 def test_configure_programs_roi_binning_gain_and_trigger_then_starts_acquiring() -> None:
     cam, fake = andor({"roi_offset_px": (10, 20), "hs_speed_index": 1, "preamp_gain_index": 2, "em_gain_mode": "real"})
-    cam.configure(camera_config(roi_width_px=64, roi_height_px=16, binning=(2, 2), em_gain=500, exposure_s=0.02))
+    cam.configure(camera_config(roi_width_px=64, roi_height_px=16, binning=(2, 2), em_gain=500, exposure_s=0.02,
+                                horizontal_rate_hz=20e6, vertical_shift_s=0.6e-6, vertical_clock_voltage=4))
     s = fake.settings
     assert s["SetImage"] == (2, 2, 11, 74, 21, 36)  # 1-based inclusive sensor coordinates, whole bins
     assert cam.frame_shape == (8, 32)
     assert (s["SetReadMode"], s["SetAcquisitionMode"], s["SetTriggerMode"]) == (4, 5, 1)
     assert s["SetFrameTransferMode"] == 1 and s["SetOutputAmplifier"] == 0 and s["SetHSSpeed"] == (0, 1)
-    assert s["SetVSSpeed"] == 3  # the SDK's fastest recommended speed when none is set
+    assert s["SetVSSpeed"] == 0 and s["SetVSAmplitude"] == 4  # the camera config's speed when no index is set
     assert (s["SetEMGainMode"], s["SetEMAdvanced"], s["SetEMCCDGain"]) == (3, 1, 500)
     assert s["SetCameraLinkMode"] == 0 and s["SetExposureTime"] == 0.02 and s["SetPreAmpGain"] == 2
     order = calls(fake)
     assert order.index("AbortAcquisition") < order.index("SetImage") < order.index("PrepareAcquisition") \
         < order.index("StartAcquisition") == len(order) - 1
     assert fake.acquiring
-    cam.configure(camera_config(exposure_s=0.05))  # again while acquiring: the adapter stops first
+    cam.configure(camera_config(exposure_s=0.05, horizontal_rate_hz=20e6))  # again while acquiring: it stops first
     assert fake.settings["SetExposureTime"] == 0.05 and fake.acquiring
 
 
@@ -108,6 +109,9 @@ def test_configure_programs_roi_binning_gain_and_trigger_then_starts_acquiring()
         ({"roi_offset_px": (1000, 0)}, {}, r"does not fit the 1024x1024 sensor.*roi_offset_px"),
         ({"em_gain_mode": "dac255"}, {"em_gain": 300}, r"camera\.em_gain = 300 is outside .* 0\.\.255"),
         ({"vs_speed_index": 9}, {}, r"SetVSSpeed failed with DRV_P1INVALID; devices\.andor\.vs_speed_index"),
+        ({"vs_speed_index": 1}, {}, r"shifts rows in 1\.13 us but camera\.vertical_shift_s is 4\.33 us"),
+        ({}, {"vertical_shift_s": 1e-6}, r"not a vertical shift speed of this camera; it has 0\.6, 1\.13"),
+        ({"hs_speed_index": 2}, {}, r"hs_speed_index 2 reads 10 MHz but camera\.horizontal_rate_hz is 30 MHz"),
     ],
 )
 def test_bad_settings_fail_naming_the_field(settings: dict[str, Any], config: dict[str, Any], match: str) -> None:

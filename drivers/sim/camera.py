@@ -10,13 +10,14 @@ truth, plus the camera's own settings):
   by a pixel-integrated Gaussian PSF at the trap's sub-pixel position; split over pixels this is an
   independent Poisson draw per pixel with mean ``N * fraction`` (Poisson thinning), which is what we draw;
 - every sensor pixel adds Poisson(``background_photons_per_px_per_s * exposure_s * quantum_efficiency``) of
-  stray light and Poisson(``clock_induced_charge_e``) of clock-induced charge, which comes with every readout
-  whatever the exposure;
+  stray light and Poisson(clock-induced charge), which comes with every readout whatever the exposure and
+  depends on how the rows are clocked (``clock_induced_charge``);
 - binning is on-chip: charge of a ``bx x by`` bin is summed *before* the EM register, so a binned pixel is
   one Poisson draw of the summed mean, amplified once and read once (this is why binning helps an EMCCD);
 - EM gain: ``Gamma(shape=n, scale=em_gain)`` for ``n > 0`` electrons, else 0;
-- read noise Normal(0, read_noise_e), then ``counts = electrons / electrons_per_count + bias`` rounded and
-  clipped to the 16-bit ADC range ``[0, 65535]`` (saturation).
+- read noise Normal(0, the read noise at the horizontal readout rate, ``read_noise``), then
+  ``counts = electrons / electrons_per_count + bias`` rounded and clipped to the 16-bit ADC
+  range ``[0, 65535]`` (saturation).
 
 The expensive part runs in a numba kernel that draws from the caller's ``np.random.Generator``, so a seeded
 lab is reproducible. Drawing it literally (``_emccd_counts``: a Poisson, a gain and a normal draw per pixel)
@@ -38,6 +39,21 @@ vertical shift plus ``width + 48`` horizontal shifts (image columns, 32 dark ref
 constant ``468 + 604 + 16`` shifts through the dump/gain chain, and the DMA of the binned frame at
 ``transfer_bytes_per_s``. The horizontal shift count uses the *unbinned* ROI width: the paper measures that
 horizontal binning does not change the readout time (Fig. 3d), while vertical binning halves it per doubling.
+
+The camera's readout options (iXon Ultra 888, the paper's camera; Andor's hardware guide, "Variable vertical
+shift speed" and "Variable horizontal readout rate") and what each costs here:
+- vertical shift speed (``VERTICAL_SHIFT_OPTIONS_S``): faster rows shorten the frame transfer and every
+  row's readout; a faster clock moves a bright pixel's charge completely only at a higher vertical clock
+  voltage (each speed has a lowest ``vertical_clock_voltage``, enforced: charge left behind, i.e. smear,
+  is not modelled), and a higher voltage raises the clock-induced charge by ``CIC_PER_VOLTAGE_STEP`` per
+  step; at a fixed voltage a faster clock lowers it a little (``sqrt`` of the shift time, a model choice);
+- horizontal readout rate (``HORIZONTAL_RATE_OPTIONS_HZ``): faster pixels shorten every row; read noise
+  grows as the square root of the rate (the amplifier's bandwidth; white-noise model);
+- binning: vertical binning reads fewer rows; both directions put a spot's light in fewer binned pixels,
+  each with one read noise but the stray light and CIC of all its sensor pixels;
+- region of interest: fewer rows read, fewer columns shifted per row.
+``sim.imaging.clock_induced_charge_e`` and ``read_noise_e`` are the sensor's values at the slowest, normal
+voltage shift (4.33 us) and at 30 MHz (``REFERENCE_VERTICAL_SHIFT_S``, ``REFERENCE_HORIZONTAL_RATE_HZ``).
 """
 
 from __future__ import annotations
@@ -52,17 +68,22 @@ import numpy as np
 from scipy.special import gammainc, log_ndtr, ndtr
 
 from drivers.sim.clock import SimClock
-from engine.config import CameraConfig, SystemConfig
+from engine.config import CameraConfig, SimImagingConfig, SystemConfig
 from engine.devices import DeviceError, FrameInfo
 from engine.imaging_calibration import Population
 from engine.psf import PsfModel, frame_shape, pixel_fractions, trap_positions_px
 
 __all__ = [
+    "HORIZONTAL_RATE_OPTIONS_HZ",
+    "VERTICAL_SHIFT_OPTIONS_S",
     "BackgroundTable",
     "ReadoutTime",
     "SimCamera",
     "background_table",
+    "check_readout_options",
+    "clock_induced_charge",
     "predicted_sum_statistics",
+    "read_noise",
     "readout_time",
     "trap_brightness",
 ]
@@ -78,6 +99,19 @@ ADC_QUANTISATION_VAR = 1.0 / 12.0
 _BRIGHTNESS_STREAM = int.from_bytes(b"brightness", "big")  # spawn key of the brightness pattern under sim.seed
 
 FaultKind = Literal["timeout", "corrupt"]
+
+#: iXon Ultra 888 vertical shift speeds (seconds per row) -> the lowest vertical clock voltage step that moves
+#: a bright pixel's charge completely at that speed (an estimate: Andor advises raising the voltage for the
+#: fastest speeds; a lab checks for vertical smear and sets its own)
+VERTICAL_SHIFT_OPTIONS_S: dict[float, int] = {0.6e-6: 4, 1.13e-6: 2, 2.2e-6: 0, 4.33e-6: 0}
+#: iXon Ultra 888 horizontal readout rates of the EM amplifier (pixels per second)
+HORIZONTAL_RATE_OPTIONS_HZ: tuple[float, ...] = (30e6, 20e6, 10e6, 1e6)
+#: Settings at which ``sim.imaging.clock_induced_charge_e`` and ``read_noise_e`` hold
+REFERENCE_VERTICAL_SHIFT_S = 4.33e-6
+REFERENCE_HORIZONTAL_RATE_HZ = 30e6
+#: Clock-induced charge grows by this factor per vertical clock voltage step (order of magnitude: CIC rises
+#: steeply with the clock swing; Daigle et al. and Andor's guides)
+CIC_PER_VOLTAGE_STEP = 2.0
 
 
 @dataclass(frozen=True)
@@ -110,6 +144,50 @@ def readout_time(camera: CameraConfig) -> ReadoutTime:
         + READOUT_OFFSET_SHIFTS * shift_s,
         dma_s=h * w * BYTES_PER_PIXEL / camera.transfer_bytes_per_s,
     )
+
+
+def _option(value: float, options: tuple[float, ...] | list[float]) -> float | None:
+    """The camera option ``value`` stands for (floats from YAML: 1 part in 1e6), or None."""
+    return next((o for o in options if math.isclose(value, o, rel_tol=1e-6)), None)
+
+
+def check_readout_options(camera: CameraConfig) -> None:
+    """Raise ``ValueError`` unless ``camera`` asks for readout settings the iXon Ultra 888 has, with a vertical
+    clock voltage high enough for its shift speed."""
+    speed = _option(camera.vertical_shift_s, list(VERTICAL_SHIFT_OPTIONS_S))
+    if speed is None:
+        speeds = ", ".join(f"{s * 1e6:g}e-6" for s in VERTICAL_SHIFT_OPTIONS_S)
+        raise ValueError(
+            f"camera.vertical_shift_s = {camera.vertical_shift_s:g} s is not a vertical shift speed of the "
+            f"iXon Ultra 888; use one of {speeds}"
+        )
+    if _option(camera.horizontal_rate_hz, HORIZONTAL_RATE_OPTIONS_HZ) is None:
+        rates = ", ".join(f"{r:.0e}" for r in HORIZONTAL_RATE_OPTIONS_HZ)
+        raise ValueError(
+            f"camera.horizontal_rate_hz = {camera.horizontal_rate_hz:g} is not a readout rate of the iXon Ultra "
+            f"888's EM amplifier; use one of {rates}"
+        )
+    needed = VERTICAL_SHIFT_OPTIONS_S[speed]
+    if camera.vertical_clock_voltage < needed:
+        raise ValueError(
+            f"camera.vertical_shift_s = {speed * 1e6:g} us leaves charge behind at vertical clock voltage "
+            f"+{camera.vertical_clock_voltage}; set camera.vertical_clock_voltage to at least {needed} "
+            "(more clock-induced charge) or shift slower"
+        )
+
+
+def clock_induced_charge(camera: CameraConfig, imaging: SimImagingConfig) -> float:
+    """Mean clock-induced electrons per sensor pixel per readout at the camera's vertical clocking: the
+    sensor's value at 4.33 us and normal voltage, times ``CIC_PER_VOLTAGE_STEP`` per voltage step, times
+    ``sqrt(shift time / 4.33 us)`` (a shorter clock pulse makes a little less)."""
+    speed = math.sqrt(camera.vertical_shift_s / REFERENCE_VERTICAL_SHIFT_S)
+    return imaging.clock_induced_charge_e * speed * CIC_PER_VOLTAGE_STEP**camera.vertical_clock_voltage
+
+
+def read_noise(camera: CameraConfig, imaging: SimImagingConfig) -> float:
+    """Read noise (electrons rms) at the camera's horizontal readout rate: the sensor's 30 MHz value scaled
+    by ``sqrt(rate / 30 MHz)`` (the output amplifier's white noise over its bandwidth)."""
+    return imaging.read_noise_e * math.sqrt(camera.horizontal_rate_hz / REFERENCE_HORIZONTAL_RATE_HZ)
 
 
 def _stamps(config: SystemConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -157,7 +235,7 @@ def _electrons_per_exposure(config: SystemConfig) -> tuple[float, float]:
     bx, by = cam.binning
     atom_e = img.scattering_rate_hz * cam.exposure_s * img.collection_efficiency * img.quantum_efficiency
     pixel_e = img.background_photons_per_px_per_s * cam.exposure_s * img.quantum_efficiency
-    return atom_e, (pixel_e + img.clock_induced_charge_e) * bx * by
+    return atom_e, (pixel_e + clock_induced_charge(cam, img)) * bx * by
 
 
 def predicted_sum_statistics(config: SystemConfig, psf: PsfModel) -> tuple[Population, Population]:
@@ -176,7 +254,7 @@ def predicted_sum_statistics(config: SystemConfig, psf: PsfModel) -> tuple[Popul
     lam_atom = lam_empty + atom_e * trap_brightness(config)[:, None] * psf.light_fraction
     w = psf.weights.astype(np.float64)
     g = cam.em_gain / img.electrons_per_count  # counts per electron entering the EM register
-    noise_var = (img.read_noise_e / img.electrons_per_count) ** 2 + ADC_QUANTISATION_VAR
+    noise_var = (read_noise(cam, img) / img.electrons_per_count) ** 2 + ADC_QUANTISATION_VAR
     populations = []
     for lam in (lam_empty, lam_atom):
         mean = (w * (img.bias_counts + lam * g)).sum(axis=1)
@@ -293,16 +371,18 @@ def background_table(
         a, b = x / sigma, sigma / g
         phi_a = ndtr(a)
         big_e = np.exp(-x / g + b * b / 2 + log_ndtr(a - b))  # computed in logs: no overflow for any x
-        cdfs = [phi_a, phi_a - big_e, phi_a - (1 + x / g - b * b) * big_e - b * np.exp(-a * a / 2) / math.sqrt(2 * math.pi)]
+        phi_density = np.exp(-a * a / 2) / math.sqrt(2 * math.pi)
+        cdfs = [phi_a, phi_a - big_e, phi_a - (1 + x / g - b * b) * big_e - b * phi_density]
         pmfs = [binned(c) for c in cdfs]
     else:  # no read noise: the Gamma CDFs themselves, and a point at the bias for no electron
         y = np.maximum(x, 0.0) / g
         pmf0 = np.zeros(k.size)
         pmf0[min(max(round(bias), k_lo), k_hi) - k_lo] = 1.0
-        pmfs = [pmf0, binned(np.where(x > 0, -np.expm1(-y), 0.0)), binned(np.where(x > 0, 1 - np.exp(-y) * (1 + y), 0.0))]
+        one, two = np.where(x > 0, -np.expm1(-y), 0.0), np.where(x > 0, 1 - np.exp(-y) * (1 + y), 0.0)
+        pmfs = [pmf0, binned(one), binned(two)]
     pois_table = [math.exp(-lam) * lam**n / math.factorial(n) for n in range(TABLE_ELECTRONS + 1)]
     p_slow = float(gammainc(TABLE_ELECTRONS + 1.0, lam)) if lam > 0 else 0.0  # P(n > TABLE_ELECTRONS)
-    counts_pmf = sum(p * np.clip(m, 0.0, None) for p, m in zip(pois_table, pmfs))
+    counts_pmf = sum(p * np.clip(m, 0.0, None) for p, m in zip(pois_table, pmfs, strict=True))
     pmf = np.concatenate([counts_pmf, [p_slow]])
     pmf /= pmf.sum()
     value = np.concatenate([k.astype(np.int64), [-1]])
@@ -503,6 +583,7 @@ class SimCamera:
         data["camera"] = config.model_dump()
         self._system = SystemConfig.model_validate(data)
         cam = self._system.camera
+        check_readout_options(cam)
         self._frame_shape = frame_shape(cam)
         self._frame = np.zeros(self._frame_shape, dtype=np.uint16)  # rendered at trigger(), handed out at read()
         self._readout = readout_time(cam)
@@ -512,8 +593,9 @@ class SimCamera:
         atom_e, self._background_e = _electrons_per_exposure(self._system)
         self._trap_atom_e = atom_e * trap_brightness(self._system)  # a whole exposure's light, per trap
         self._atom_e = np.empty_like(self._trap_atom_e)
+        self._read_noise_e = read_noise(cam, img)
         self._table = background_table(
-            self._background_e, cam.em_gain, img.read_noise_e, img.electrons_per_count, img.bias_counts
+            self._background_e, cam.em_gain, self._read_noise_e, img.electrons_per_count, img.bias_counts
         )
         self._t_exposure_start_s = None
 
@@ -590,11 +672,11 @@ class SimCamera:
         _expected_electrons(self._atom_e, self._stamp_idx, self._stamp_frac, self._background_e, self._mean_e)
         if self.reference:
             _emccd_counts(
-                self._rng, self._mean_e, cam.em_gain, img.read_noise_e, img.electrons_per_count, img.bias_counts, out
+                self._rng, self._mean_e, cam.em_gain, self._read_noise_e, img.electrons_per_count, img.bias_counts, out
             )
             return
         t = self._table
         _emccd_counts_split(
-            self._rng, self._mean_e, self._background_e, cam.em_gain, img.read_noise_e, img.electrons_per_count,
+            self._rng, self._mean_e, self._background_e, cam.em_gain, self._read_noise_e, img.electrons_per_count,
             img.bias_counts, t.prob, t.alias, t.value, t.bg_cdf, t.slow_cdf, out,
         )  # fmt: skip

@@ -102,7 +102,7 @@ def cell_config(
         sim.update(survival_transfer=survival[0], survival_step=survival[1])
     base["loop"]["max_cycles"] = max_cycles
     if cell.planner is not None:
-        base["solver"].update(planner_settings(cell.planner))
+        base["solver"] = planner_settings(cell.planner)  # the spec alone: no strategy or objective of the example
     return SystemConfig.model_validate(base)
 
 

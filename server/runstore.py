@@ -101,7 +101,7 @@ class _RunFile:
                     stage_us[cyc.index, STAGES.index(stage)] = seconds * 1e6
             plan[cyc.index] = (cyc.n_slots, cyc.n_steps, cyc.underruns)
             latency[cyc.index] = cyc.latency_s * 1e6
-        filled = record.truth.get("target_filled")
+        filled = record.lab_report.get("target_filled")
         values = {
             "shot_id": record.shot_id,
             "outcome": record.outcome.value.encode(),

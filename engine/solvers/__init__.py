@@ -93,6 +93,7 @@ class Solver:
             raise PlannerError(f"solver.algorithm {algorithm!r} is not known; choose one of {', '.join(ALGORITHMS)}")
         if objective not in OBJECTIVES:
             raise PlannerError(f"solver.objective {objective!r} is not known; choose one of {', '.join(OBJECTIVES)}")
+        self.nx, self.ny = nx, ny  # the array it plans for (``Planner``)
         try:
             if algorithm in OBJECTIVE_AWARE:
                 self.planner = factory(nx, ny, trap_source, objective)  # type: ignore[call-arg]

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from conftest import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 CHROMIUM = os.environ.get("LLRS_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
@@ -102,10 +103,9 @@ def test_serve_prints_urls_and_runs_shots_on_the_simulated_lab(served: Served) -
     assert served.api.startswith("http://127.0.0.1:") and served.dashboard.startswith("http://127.0.0.1:")
     index = httpx.get(served.api + "/").text
     assert f'href="{served.dashboard}"' in index  # GET / links the dashboard
-    deadline = time.monotonic() + 60
-    while (status := httpx.get(served.api + "/api/status").json())["shots_done"] < 2:
-        assert time.monotonic() < deadline, status
-        time.sleep(0.2)
+    wait_until(lambda: httpx.get(served.api + "/api/status").json()["shots_done"] >= 2, timeout_s=60,
+               what="two shots on the served lab")
+    status = httpx.get(served.api + "/api/status").json()
     assert status["state"] == "running" and status["devices"]["camera"] == "sim"
     assert status["last_shot"]["target_filled"] is not None  # the simulated world's ground truth
 

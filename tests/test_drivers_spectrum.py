@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ctypes
 import sys
+import time
 from typing import Any
 
 import numpy as np
@@ -382,8 +383,6 @@ class _Bank:
 
 class _Clock:
     def now_s(self) -> float:
-        import time
-
         return time.monotonic()
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.signal import hilbert
 from sim_signals import chain_config, grid_config
 from waveform_reference import ReferenceSynth
 
@@ -35,9 +36,11 @@ from engine.waveforms import (
     axis_tones,
     continuous_phases,
     phase_track,
+    prefix_formula_bytes,
     shape_curve,
     table_formula_bytes,
 )
+from engine.waveforms.kernels import _RUN0
 
 ROOT = Path(__file__).resolve().parents[1]
 SHAPES = {"min-jerk": {"shape": "min-jerk"}, "tanh": {"shape": "tanh", "shape_sharpness": 6.0},
@@ -135,8 +138,6 @@ def test_axis_tones_csv_errors(tmp_path: Path, rows, header: str, match: str) ->
 def _tweezer_track(cfg, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Position (sites from k) of a tone that sits at k for a slot, moves to k + 1, sits there a slot: measured
     from the samples (instantaneous frequency of the analytic signal), and what a pure min-jerk move gives."""
-    from scipy.signal import hilbert
-
     b = WaveformBank(cfg)
     n = b.slot_samples
     if cfg.array.trap_source == "aod":  # a chain mover row is move - static: add the static tone back
@@ -717,9 +718,6 @@ def random_run_plan(rng, nx: int, ny: int, n_slots: int) -> Operations:
 
 
 def test_prefix_runs_render_bit_identically_to_single_rows() -> None:
-    from engine.waveforms import prefix_formula_bytes
-    from engine.waveforms.kernels import _RUN0
-
     nx, ny = 12, 40
     cfg = grid_config(nx, ny)
     b = bank("grid-runs", cfg)

@@ -18,6 +18,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -51,14 +52,13 @@ class Served:
         self.proc, self.api, self.dashboard, self.lines = proc, api, dashboard, lines
 
 
-@pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
-    runs = tmp_path_factory.mktemp("runs")
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    env.pop("LLRS_TOKEN", None)
+@contextmanager
+def llrs_serve(*args: str, env: dict[str, str]) -> Iterator[Served]:
+    """``llrs serve --port 0 --dashboard-port 0 *args`` in a subprocess, yielded once it has printed its URLs
+    (the test fails with its output if it does not), stopped with Ctrl-C at the end; its output is kept in
+    ``Served.lines``."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "server.cli", "serve", "--port", "0", "--dashboard-port", "0",
-         "--runs-dir", str(runs), "--pause", "0.3"],
+        [sys.executable, "-m", "server.cli", "serve", "--port", "0", "--dashboard-port", "0", *args],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     lines: list[str] = []
@@ -87,6 +87,14 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
             proc.kill()
             out, _ = proc.communicate()
         lines.append(out)
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.pop("LLRS_TOKEN", None)
+    with llrs_serve("--runs-dir", str(tmp_path_factory.mktemp("runs")), "--pause", "0.3", env=env) as running:
+        yield running
 
 
 @pytest.fixture(scope="module")

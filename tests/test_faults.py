@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import INJECTED_FAULTS
 from sim_signals import chain_config
 
 from drivers.sim.lab import SimLab, build_sim_lab
@@ -41,12 +42,7 @@ def healthy_shot(engine: Engine) -> None:
 
 @pytest.mark.parametrize(
     ("faults", "reason"),
-    [
-        ({"camera": "timeout"}, "camera: no frame within"),
-        ({"camera": "corrupt"}, "arrived corrupt"),
-        ({"awg_upload": "fail"}, "injected upload failure"),
-        ({"solver": "exception"}, "InjectedSolverFault"),
-    ],
+    INJECTED_FAULTS,
 )
 def test_fault_ends_the_shot_defined_and_clears(rig, faults: dict, reason: str) -> None:
     engine, lab = rig

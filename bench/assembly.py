@@ -130,7 +130,7 @@ def shot_seeds(seed: int, n_shots: int) -> list[int]:
 def _shot_summary(record: ShotRecord, lost: dict[str, int], n_target: int, lifetime_s: float) -> dict[str, Any]:
     cycles = record.cycles
     rearrangements = sum(1 for c in cycles if c.n_slots > 0)
-    filled = bool(record.truth.get("target_filled", False))
+    filled = bool(record.lab_report.get("target_filled", False))
     time_to_array_s = cycles[-1].t_image_s - cycles[0].t_start_s if (filled and record.success) else None
     t_last_s = record.duration_s - cycles[-1].t_start_s if cycles else record.duration_s
     return {

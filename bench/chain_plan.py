@@ -57,7 +57,7 @@ def _cmd(args: argparse.Namespace) -> int:
         bank.lookup(plan.operations, 0, n, keys)  # again at once: caches warm, as after the engine's rehearsal
         warm_s.append((time.perf_counter() - t0) / n)
         t0 = time.perf_counter()
-        bank.render(plan.operations, 0, n, out)
+        bank.render(0, n, out)
         render_s.append((time.perf_counter() - t0) / n)
     us = lambda v, q: float(np.percentile(v, q)) * 1e6  # noqa: E731
     print(f"exact-1d solve + batch: median {us(plan_s, 50):.2f} us, p99 {us(plan_s, 99):.2f} us ({len(plan_s)} instances)")

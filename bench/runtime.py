@@ -100,7 +100,7 @@ def runtime_figures(records: list[ShotRecord], problem: str | None = None) -> di
     sw_render = _stats_us(_software_s(records, SOFTWARE_STAGES_WITH_RENDER))
     return {
         "shots": len(records),
-        "successes": sum(1 for r in records if r.truth.get("target_filled", r.success)),
+        "successes": sum(1 for r in records if r.lab_report.get("target_filled", r.success)),
         "rearranging_cycles": sw["n"],
         "slots_median": float(np.median(slots)) if slots else float("nan"),
         "underruns": underruns,

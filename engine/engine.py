@@ -21,38 +21,42 @@ from engine.config import SystemConfig
 from engine.devices import DeviceError, DeviceSet
 from engine.host import EngineCommands
 from engine.imaging import Detector, calibration_frames
-from engine.operations import Plan
 from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves
-from engine.solvers import LossWeights, Solver, UnsolvableError
+from engine.solvers import LossWeights, Planner, Solver, UnsolvableError
 from engine.streaming import Streamer
 from engine.targets import build_target, target_filled
 from engine.timing import StageTimer
 from engine.waveforms import WaveformBank
 
-__all__ = ["Engine", "EngineThread", "InjectedSolverFault", "Lab", "ShotWatchdogExpired"]
+__all__ = ["Engine", "EngineThread", "Lab", "ShotWatchdogExpired"]
 
 
 class Lab(Protocol):
-    """Optional hooks of a simulated lab: load atoms before a shot and report the ground truth after it.
+    """What the engine asks of a lab besides its devices, where there is such a lab (the simulated one; on
+    hardware there is none: the experiment loads the atoms and nobody reports on them).
 
-    Real hardware has no such object: the experiment loads the atoms and nobody knows the truth.
+    The engine does not know what the lab is: it lets it adopt each configuration, load atoms before each
+    shot, stand in for the planner (a lab may inject planner faults), and carries what it reports after a
+    shot, unread, in ``ShotRecord.lab_report``.
     """
 
     def configure(self, config: SystemConfig) -> None:
         """Adopt a configuration the engine is applying (array, loss model, injected faults)."""
         ...
 
+    def planner(self, planner: Planner, config: SystemConfig) -> Planner:
+        """The planner the engine is to use under ``config``: ``planner`` itself, or one the lab puts in its place."""
+        ...
+
     def prepare_shot(self) -> None: ...
 
-    def ground_truth(self) -> np.ndarray: ...
+    def shot_report(self, target: np.ndarray) -> dict[str, Any]:
+        """After a shot: what the lab has to say about it (JSON-ready; ``target`` is the shot's ``bool[ny, nx]``)."""
+        ...
 
 
 class ShotWatchdogExpired(RuntimeError):
     """A shot ran past its watchdog (``Engine.shot_watchdog_s``): it ends as a fault with the atoms held."""
-
-
-class InjectedSolverFault(Exception):
-    """Raised by the planner when ``sim.faults.solver`` asks for it: stands in for a bug in a planner."""
 
 
 def _solver(config: SystemConfig) -> Solver:
@@ -73,22 +77,6 @@ def _solver(config: SystemConfig) -> Solver:
     )  # fmt: skip
 
 
-class _FailingSolver:
-    """Wraps the configured solver and fails every solve (fault injection in the simulated lab only)."""
-
-    def __init__(self, solver: Solver) -> None:
-        self._solver = solver
-
-    def check_target(self, target: np.ndarray) -> None:
-        self._solver.check_target(target)
-
-    def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
-        raise InjectedSolverFault("injected solver fault (sim.faults.solver = 'exception')")
-
-    def batch(self) -> Plan:
-        return self._solver.batch()
-
-
 @dataclass
 class _Pipeline:
     """Everything built from one configuration; swapped in whole so a bad config never half-applies."""
@@ -96,7 +84,7 @@ class _Pipeline:
     config: SystemConfig
     target: np.ndarray
     detector: Detector
-    solver: Solver | _FailingSolver
+    solver: Planner
     bank: WaveformBank
     streamer: Streamer
     image: np.ndarray
@@ -154,8 +142,8 @@ class Engine:
         )
         pipeline.solver.check_target(target)
         target_filled(pipeline.occupancy, target)  # compile (or load) before the engine reports ready
-        if self.lab is not None and config.sim.faults.solver == "exception":
-            pipeline.solver = _FailingSolver(pipeline.solver)
+        if self.lab is not None:
+            pipeline.solver = self.lab.planner(pipeline.solver, config)
         try:
             self._program_devices(pipeline)
             running = self._p.detector if self._p is not None else None
@@ -264,11 +252,7 @@ class Engine:
                 )
             )
         if self.lab is not None:
-            truth = self.lab.ground_truth()
-            record.truth = {
-                "occupancy_rows": ["".join("1" if v else "0" for v in row) for row in truth],
-                "target_filled": bool(np.all(truth[p.target])),
-            }
+            record.lab_report = self.lab.shot_report(p.target)
         try:
             self.devices.awg.pulse("resume")  # tell the lab's sequencer the array is ready
         except DeviceError as err:

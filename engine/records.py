@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -11,7 +11,7 @@ import numpy as np
 __all__ = ["CycleRecord", "Outcome", "ShotRecord", "atom_moves", "occupancy_to_rows"]
 
 
-class Outcome(str, Enum):
+class Outcome(StrEnum):
     SUCCESS = "success"  # every target trap occupied (judged from the image)
     UNSOLVABLE = "unsolvable"  # fewer atoms than target traps
     MAX_CYCLES = "max_cycles"  # still defects after max_cycles cycles
@@ -91,7 +91,9 @@ class ShotRecord:
     t_start_s: float = 0.0
     duration_s: float = 0.0
     images: list[np.ndarray] | None = None
-    truth: dict[str, Any] = field(default_factory=dict)  # simulated lab only: the world's ground truth
+    # what the lab reported after the shot (``engine.engine.Lab.shot_report``), carried unread; empty on
+    # hardware. The simulated lab reports its world's atoms (``drivers.sim.lab.SimLab.shot_report``).
+    lab_report: dict[str, Any] = field(default_factory=dict)
 
     @property
     def success(self) -> bool:
@@ -107,5 +109,5 @@ class ShotRecord:
             "fault": self.fault,
             "cycles": [c.to_dict() for c in self.cycles],
             "duration_s": self.duration_s,
-            "truth": self.truth,
+            "truth": self.lab_report,  # the key stored runs and the dashboard have always used
         }

@@ -199,13 +199,13 @@ class Streamer:
         count = min(len(ops), self.slots_per_segment)
         if count:
             self.bank.lookup(ops, 0, count, self._keys)
-            self.bank.render(ops, 0, count, self._segment_bufs[1])
+            self.bank.render(0, count, self._segment_bufs[1])
 
     def _lookup_and_render(self, ops: Operations, first: int, count: int, out: np.ndarray, timer: StageTimer | None) -> None:
         self.bank.lookup(ops, first, count, self._keys)
         if timer is not None:
             timer.lap("IV.lookup")
-        self.bank.render(ops, first, count, out)
+        self.bank.render(first, count, out)
         self._rf_guard.check(out[: count * self.bank.slot_samples])  # before any upload: refuse, saying why
         if timer is not None:
             timer.lap("IV.render")

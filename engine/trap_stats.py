@@ -80,7 +80,7 @@ class TrapStatistics:
             np.add.at(self.survival_kept, destination, occ[k + 1][destination])
         self.target = np.asarray(record.target, dtype=bool).reshape(-1)
         self.defects += self.target & ~occ[-1]
-        truth_rows = record.truth.get("occupancy_rows")
+        truth_rows = record.lab_report.get("occupancy_rows")
         if truth_rows:
             truth = _rows_to_bool(truth_rows).reshape(-1)
             if truth.size == n:

@@ -40,7 +40,7 @@ def run_summary(records: list[ShotRecord]) -> dict:
     rearrangements = [sum(1 for c in r.cycles if c.n_slots > 0) for r in records]
     return {
         "shots": len(records),
-        "successes": sum(1 for r in records if r.truth.get("target_filled", False)),
+        "successes": sum(1 for r in records if r.lab_report.get("target_filled", False)),
         "engine_successes": sum(1 for r in records if r.success),
         "cycles_mean": sum(rearrangements) / max(len(records), 1),
         "outcomes": {o: sum(1 for r in records if r.outcome.value == o) for o in sorted({r.outcome.value for r in records})},
@@ -55,18 +55,18 @@ def _shot_summary(record: ShotRecord) -> dict:
     return {
         "shot": record.shot_id,
         "outcome": record.outcome.value,
-        "target_filled": record.truth.get("target_filled", False),
+        "target_filled": record.lab_report.get("target_filled", False),
         "rearrangements": sum(1 for c in record.cycles if c.n_slots > 0),
         "slots": [c.n_slots for c in record.cycles],
         "underruns": sum(c.underruns for c in record.cycles),
         "occupancy": [occupancy_to_rows(c.occupancy) for c in record.cycles],  # as detected, per cycle
-        "truth": record.truth.get("occupancy_rows", []),  # the world's atoms after the shot
+        "truth": record.lab_report.get("occupancy_rows", []),  # the world's atoms after the shot
     }
 
 
 def _print_table(summary: dict, records: list[ShotRecord]) -> None:
     for r in records:
-        truth = r.truth.get("target_filled")
+        truth = r.lab_report.get("target_filled")
         cycles = sum(1 for c in r.cycles if c.n_slots > 0)
         slots = ",".join(str(c.n_slots) for c in r.cycles if c.n_slots > 0) or "-"
         fault = f"  ({r.fault})" if r.fault else ""

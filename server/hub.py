@@ -34,7 +34,7 @@ def cycle_messages(record: ShotRecord) -> list[dict[str, Any]]:
             stage_us=c["stage_us"],
             n_slots=c["n_slots"],
             outcome=data["outcome"],
-            target_filled=record.truth.get("target_filled"),
+            target_filled=record.lab_report.get("target_filled"),
         ).model_dump(mode="json")
         for i, c in enumerate(data["cycles"])
     ]

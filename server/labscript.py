@@ -231,8 +231,8 @@ def write_shot_results(
             g.attrs["config"] = config.model_dump_json()
         if globals_used:
             g.attrs["globals"] = json.dumps(dict(globals_used), sort_keys=True, default=str)
-        if record.truth:
-            g.attrs["truth"] = json.dumps(record.truth, sort_keys=True, default=str)
+        if record.lab_report:
+            g.attrs["truth"] = json.dumps(record.lab_report, sort_keys=True, default=str)
         g.create_dataset("target", data=target)
         occ = np.zeros((n, *target.shape), dtype=bool)
         for i, c in enumerate(cycles):

@@ -208,7 +208,7 @@ def shot_summary(record: ShotRecord) -> ShotSummary:
         atoms_final=cycles[-1].atoms if cycles else 0,
         defects_final=cycles[-1].defects if cycles else int(record.target.sum()),
         duration_s=record.duration_s,
-        target_filled=record.truth.get("target_filled"),
+        target_filled=record.lab_report.get("target_filled"),
         config_digest=record.config_digest,
         images=len(record.images or ()),
     )

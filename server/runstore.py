@@ -130,7 +130,7 @@ class _RunFile:
                 rows[:, 0], rows[:, 1], rows[:, 2:] = self.n, cyc.index, cyc.moves
                 moves.append(rows)
             planner[cyc.index] = cyc.planner.encode()[:32]
-        filled = record.truth.get("target_filled")
+        filled = record.lab_report.get("target_filled")
         values = {
             "shot_id": record.shot_id,
             "outcome": record.outcome.value.encode(),

@@ -711,7 +711,7 @@ class LabService:
             self._by_id[record.shot_id] = record
             self._shots += 1
             self._successes += record.success
-            filled = record.truth.get("target_filled")
+            filled = record.lab_report.get("target_filled")
             if filled is not None:
                 self._truth_successes = (self._truth_successes or 0) + bool(filled)
             self._fault = record.fault if record.outcome is Outcome.FAULT else None

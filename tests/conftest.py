@@ -23,6 +23,15 @@ if TYPE_CHECKING:
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
+#: Every fault the simulated lab injects (``sim.faults``) and words the shot's fault reason then contains,
+#: for the engine's fault tests and the server's.
+INJECTED_FAULTS = [
+    ({"camera": "timeout"}, "camera: no frame within"),
+    ({"camera": "corrupt"}, "arrived corrupt"),
+    ({"awg_upload": "fail"}, "injected upload failure"),
+    ({"solver": "exception"}, "InjectedSolverFault"),
+]
+
 
 def lossless(config: SystemConfig, **sim: object) -> SystemConfig:
     """``config`` with the simulated lab's losses off (and any other ``sim`` fields given), so that a shot's

@@ -10,6 +10,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from engine.operations import Plan
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -22,3 +24,9 @@ def jit_and_python_outputs(script: str) -> tuple[Any, Any]:
                              check=True)
         runs.append(json.loads(res.stdout))
     return runs[0], runs[1]
+
+
+def plan_summary(plan: Plan) -> list[Any]:
+    """What the twin scripts compare of a plan, as JSON: its steps and every slot described."""
+    ops = plan.operations
+    return [plan.steps.tolist(), [ops.describe(i) for i in range(len(ops))]]

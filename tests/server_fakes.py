@@ -120,7 +120,7 @@ class FakeEngine:
         if self.keep_images:
             record.images = [np.full((16, 64), 500 + 100 * i, dtype=np.uint16) for i in range(len(states))]
             self._last_frame = record.images[-1]
-        record.truth = {"target_filled": record.outcome is Outcome.SUCCESS}
+        record.lab_report = {"target_filled": record.outcome is Outcome.SUCCESS}
         record.duration_s = 0.05
         self.shots_done += 1
         return record
@@ -138,7 +138,9 @@ class FakeEngine:
         key = truth.camera.model_dump_json()
         if self._camera is None or self._camera[0] != key:
             self._atoms = np.zeros((cfg.array.ny, cfg.array.nx), dtype=bool)
-            camera = SimCamera(truth, atoms=lambda *_: self._atoms, clock=SimClock("simulated"), rng=np.random.default_rng(7))
+            camera = SimCamera(
+                truth, atoms=lambda *_: self._atoms, clock=SimClock("simulated"), rng=np.random.default_rng(7)
+            )
             self._camera = (key, camera)
         camera = self._camera[1]
         frames = np.zeros((n, *camera.frame_shape), dtype=np.uint16)

@@ -7,10 +7,10 @@ import math
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from conftest import wait_until
 
 from bench.assembly import (
     Cell,
@@ -104,14 +104,6 @@ def test_a_shot_depends_on_its_seed_not_on_its_chunk(lossless_shots: list[dict])
         assert a["time_to_array_s"] == pytest.approx(b["time_to_array_s"], abs=50e-6)
 
 
-def _wait_for(path: Path, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not path.exists():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"{path} did not appear within {timeout_s} s")
-        time.sleep(0.1)
-
-
 def test_same_table_on_a_local_cluster_and_on_a_scheduler_started_here(tmp_path: Path) -> None:
     dask = Path(sys.executable).parent / "dask"
     scheduler_file = tmp_path / "scheduler.json"
@@ -120,9 +112,11 @@ def test_same_table_on_a_local_cluster_and_on_a_scheduler_started_here(tmp_path:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [repo, os.environ.get("PYTHONPATH")]))}
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", *common], env=env)]
     try:
-        _wait_for(scheduler_file, 60)
+        wait_until(scheduler_file.exists, timeout_s=60, what=f"{scheduler_file} to appear")
         procs.append(
-            subprocess.Popen([dask, "worker", "--nthreads", "1", "--nworkers", "1", "--host", "127.0.0.1", *common], env=env)
+            subprocess.Popen(
+                [dask, "worker", "--nthreads", "1", "--nworkers", "1", "--host", "127.0.0.1", *common], env=env
+            )
         )
         address = json.loads(scheduler_file.read_text())["address"]
         cells = [LOSSLESS, Cell("16x32", "no-such-planner", "lossless", 6000.0)]

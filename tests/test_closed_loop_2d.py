@@ -30,7 +30,9 @@ PLANNERS = [
 ]
 
 
-def _config(path: Path, algorithm: str, objective: str = "slots", *, seed: int = 1, target: dict | None = None) -> SystemConfig:
+def _config(
+    path: Path, algorithm: str, objective: str = "slots", *, seed: int = 1, target: dict | None = None
+) -> SystemConfig:
     config = load_config(path)
     update = {
         "solver": config.solver.model_copy(update={"algorithm": algorithm, "objective": objective}),
@@ -69,7 +71,7 @@ def _within_two_cycles(records: list, n_target: int) -> tuple[int, int]:
     solvable = [r for r in records if r.cycles and r.cycles[0].atoms >= n_target]
     good = [
         r for r in solvable
-        if r.truth.get("target_filled") and sum(1 for c in r.cycles if c.n_slots > 0) <= 2
+        if r.lab_report.get("target_filled") and sum(1 for c in r.cycles if c.n_slots > 0) <= 2
     ]  # fmt: skip
     return len(solvable), len(good)
 
@@ -81,17 +83,17 @@ def test_every_planner_fills_the_band_in_the_simulated_lab(algorithm: str, objec
         assert r.fault is None, r.fault
         if r.outcome == Outcome.UNSOLVABLE:
             continue
-        assert r.outcome == Outcome.SUCCESS and r.truth["target_filled"], [c.n_slots for c in r.cycles]
+        assert r.outcome == Outcome.SUCCESS and r.lab_report["target_filled"], [c.n_slots for c in r.cycles]
         assert sum(1 for c in r.cycles if c.n_slots > 0) == 1
 
 
 def test_rectangle_and_mask_targets_in_the_simulated_lab() -> None:
     rect = {"kind": "rectangle", "row0": 8, "col0": 2, "rows": 14, "cols": 12, "count": None}
     for r in _shots(_config(GRID_16, "aod-parallel", seed=5, target=rect), 2):
-        assert r.fault is None and r.truth["target_filled"], r.outcome
+        assert r.fault is None and r.lab_report["target_filled"], r.outcome
     mask = ["".join("1" if (x + y) % 2 == 0 and 6 <= y < 26 else "0" for x in range(16)) for y in range(32)]
     for r in _shots(_config(GRID_16, "assignment", seed=6, target={"kind": "mask", "mask": mask, "count": None}), 2):
-        assert r.fault is None and r.truth["target_filled"], r.outcome
+        assert r.fault is None and r.lab_report["target_filled"], r.outcome
 
 
 @pytest.mark.parametrize("algorithm", ["aod-parallel", pytest.param("red-rec", marks=pytest.mark.slow)])

@@ -3,13 +3,14 @@ controls go through the service (a refused change is shown, and changes nothing)
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
 import httpx
 import pytest
+from conftest import wait_until
+from dashboard_fakes import dashboard_on_fake_lab
 from server_fakes import FakeEngine, example_config
 
 from engine.engine import EngineThread
@@ -22,25 +23,8 @@ pytest.importorskip("viser")
 
 @pytest.fixture
 def dash(tmp_path: Path) -> Iterator[tuple[Dashboard, LabService]]:
-    service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(example_config(), keep_images=True)),  # type: ignore[arg-type, return-value]
-        store=RunStore(tmp_path / "runs"),
-        pause_s=0.01,
-    ).start()
-    dashboard = Dashboard(service, port=0, refresh_s=0.05)
-    dashboard.start()
-    try:
-        yield dashboard, service
-    finally:
-        dashboard.stop()
-        service.close()
-
-
-def wait_for(check, timeout_s: float = 10.0) -> None:  # noqa: ANN001
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.02)
+    with dashboard_on_fake_lab(tmp_path / "runs", keep_images=True) as running:
+        yield running
 
 
 def test_serves_the_viser_page(dash: tuple[Dashboard, LabService]) -> None:
@@ -53,19 +37,19 @@ def test_serves_the_viser_page(dash: tuple[Dashboard, LabService]) -> None:
 def test_draws_each_shot(dash: tuple[Dashboard, LabService]) -> None:
     dashboard, service = dash
     record = service.shot()
-    wait_for(lambda: dashboard.updates >= 1)
+    wait_until(lambda: dashboard.updates >= 1, what="the dashboard's first update")
     assert f'data-shot-id="{record.shot_id}"' in dashboard.h_atoms.content
     assert f'data-outcome="{record.outcome.value}"' in dashboard.h_atoms.content
     assert "I.acquire" in dashboard.h_timing.content
     assert dashboard.i_camera.label.startswith(f"camera, final image of shot {record.shot_id}")
     assert len(dashboard.p_success.data[0]) == 1
-    wait_for(lambda: 'data-shots="1"' in dashboard.h_status.content)
+    wait_until(lambda: 'data-shots="1"' in dashboard.h_status.content, what="the status to show one shot")
 
 
 def test_controls_drive_the_service(dash: tuple[Dashboard, LabService]) -> None:
     dashboard, service = dash
     dashboard._command("run", service.run)
-    wait_for(lambda: service.status().shots_done >= 3)
+    wait_until(lambda: service.status().shots_done >= 3, what="three shots")
     dashboard._command("stop", service.stop)
     assert not service.running
     dashboard.s_loading.value = 0.9
@@ -75,7 +59,8 @@ def test_controls_drive_the_service(dash: tuple[Dashboard, LabService]) -> None:
     dashboard.d_target.value = "centre block of 16"
     dashboard._apply(dashboard._problem_patch(), "problem")
     assert service.config.target.count == 16
-    wait_for(lambda: dashboard.d_target.value == "as configured")  # the controls follow the running config
+    # the controls follow the running config
+    wait_until(lambda: dashboard.d_target.value == "as configured", what="the target control")
 
 
 def test_a_refused_change_is_shown_and_changes_nothing(dash: tuple[Dashboard, LabService]) -> None:
@@ -90,17 +75,17 @@ def test_physicist_tabs_show_maps_assembly_and_a_recorded_shot(dash: tuple[Dashb
     dashboard, service = dash
     records = [service.shot() for _ in range(3)]
     ny, nx = service.config.array.ny, service.config.array.nx
-    wait_for(lambda: f'data-shots="{len(records)}"' in dashboard.h_traps.content)
+    wait_until(lambda: f'data-shots="{len(records)}"' in dashboard.h_traps.content, what="the trap maps")
     assert f'data-rows="{ny}" data-cols="{nx}"' in dashboard.h_traps.content
     assert dashboard.h_traps.content.count("<rect") == ny * nx
-    wait_for(lambda: 'data-shots="3"' in dashboard.h_assembly.content)
+    wait_until(lambda: 'data-shots="3"' in dashboard.h_assembly.content, what="the assembly panel")
     assert len(dashboard.p_cycles_hist.data[0]) >= 1
     service.run_store.flush()  # type: ignore[union-attr]
     dashboard._list_runs()
     dashboard.d_run.value = dashboard.d_run.options[0]
     dashboard.n_shot.value = 1
     dashboard._history_shown = None
-    wait_for(lambda: f'data-shot-id="{records[1].shot_id}"' in dashboard.h_history.content)
+    wait_until(lambda: f'data-shot-id="{records[1].shot_id}"' in dashboard.h_history.content, what="the history")
     assert "download the run file" in dashboard.h_history.content
 
 

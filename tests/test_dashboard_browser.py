@@ -18,10 +18,12 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
 import pytest
+from conftest import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 CHROMIUM = os.environ.get("LLRS_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
@@ -50,14 +52,13 @@ class Served:
         self.proc, self.api, self.dashboard, self.lines = proc, api, dashboard, lines
 
 
-@pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
-    runs = tmp_path_factory.mktemp("runs")
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    env.pop("LLRS_TOKEN", None)
+@contextmanager
+def llrs_serve(*args: str, env: dict[str, str]) -> Iterator[Served]:
+    """``llrs serve --port 0 --dashboard-port 0 *args`` in a subprocess, yielded once it has printed its URLs
+    (the test fails with its output if it does not), stopped with Ctrl-C at the end; its output is kept in
+    ``Served.lines``."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "server.cli", "serve", "--port", "0", "--dashboard-port", "0",
-         "--runs-dir", str(runs), "--pause", "0.3"],
+        [sys.executable, "-m", "server.cli", "serve", "--port", "0", "--dashboard-port", "0", *args],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     lines: list[str] = []
@@ -89,6 +90,14 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
 
 
 @pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.pop("LLRS_TOKEN", None)
+    with llrs_serve("--runs-dir", str(tmp_path_factory.mktemp("runs")), "--pause", "0.3", env=env) as running:
+        yield running
+
+
+@pytest.fixture(scope="module")
 def browser(served: Served) -> Iterator[object]:
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
@@ -102,10 +111,9 @@ def test_serve_prints_urls_and_runs_shots_on_the_simulated_lab(served: Served) -
     assert served.api.startswith("http://127.0.0.1:") and served.dashboard.startswith("http://127.0.0.1:")
     index = httpx.get(served.api + "/").text
     assert f'href="{served.dashboard}"' in index  # GET / links the dashboard
-    deadline = time.monotonic() + 60
-    while (status := httpx.get(served.api + "/api/status").json())["shots_done"] < 2:
-        assert time.monotonic() < deadline, status
-        time.sleep(0.2)
+    wait_until(lambda: httpx.get(served.api + "/api/status").json()["shots_done"] >= 2, timeout_s=60,
+               what="two shots on the served lab")
+    status = httpx.get(served.api + "/api/status").json()
     assert status["state"] == "running" and status["devices"]["camera"] == "sim"
     assert status["last_shot"]["target_filled"] is not None  # the simulated world's ground truth
 

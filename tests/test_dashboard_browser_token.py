@@ -5,18 +5,12 @@ after logging in with the token in its own field, the same button runs a shot.""
 from __future__ import annotations
 
 import os
-import re
-import signal
-import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
-
-from test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS, ROOT, START_TIMEOUT_S
+from test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS, llrs_serve
 
 if not Path(CHROMIUM).exists():
     pytest.skip(f"no Chromium at {CHROMIUM}", allow_module_level=True)
@@ -28,31 +22,9 @@ TOKEN = "dashboard-token"
 @pytest.fixture(scope="module")
 def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "LLRS_TOKEN": TOKEN}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "server.cli", "serve", "--port", "0", "--dashboard-port", "0", "--idle",
-         "--engine", "thread", "--runs-dir", str(tmp_path_factory.mktemp("runs"))],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )
-    api = dashboard = None
-    deadline = time.monotonic() + START_TIMEOUT_S
-    assert proc.stdout is not None
-    while time.monotonic() < deadline and (api is None or dashboard is None):
-        line = proc.stdout.readline()
-        if not line:
-            break
-        if m := re.match(r"\s+dashboard\s+(http://\S+)", line):
-            dashboard = m.group(1)
-        if m := re.match(r"\s+API\s+(http://\S+?)/?\s", line):
-            api = m.group(1)
-    try:
-        assert api is not None and dashboard is not None, "llrs serve did not print its URLs"
-        yield api, dashboard
-    finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+    runs = str(tmp_path_factory.mktemp("runs"))
+    with llrs_serve("--idle", "--engine", "thread", "--runs-dir", runs, env=env) as running:
+        yield running.api, running.dashboard
 
 
 def token_field(page: object) -> object:

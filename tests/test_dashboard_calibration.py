@@ -7,30 +7,18 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from dashboard_fakes import dashboard_on_fake_lab
 
-from engine.engine import EngineThread
 from frontend.dashboard import Dashboard
-from server.runstore import RunStore
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
 
 pytest.importorskip("viser")
 
 
 @pytest.fixture
 def dash(tmp_path: Path) -> Iterator[tuple[Dashboard, LabService]]:
-    service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(example_config())),  # type: ignore[arg-type, return-value]
-        store=RunStore(tmp_path / "runs"),
-        pause_s=0.01,
-    ).start()
-    dashboard = Dashboard(service, port=0, refresh_s=0.05)
-    dashboard.start()
-    try:
-        yield dashboard, service
-    finally:
-        dashboard.stop()
-        service.close()
+    with dashboard_on_fake_lab(tmp_path / "runs") as running:
+        yield running
 
 
 def test_fit_shows_the_candidate_beside_the_configured_threshold_and_applies_it(dash) -> None:  # noqa: ANN001

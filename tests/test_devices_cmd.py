@@ -15,6 +15,7 @@ import yaml
 from drivers.factory import available_devices, open_devices
 from engine.config import ConfigError, DevicesConfig, SystemConfig, config_from_dict
 from engine.devices import DeviceError
+from engine.waveforms import WaveformBank
 from server import devices_cmd
 from tests.fake_activesilicon import FakePhxLibrary
 from tests.fake_andor import make_fake_andor
@@ -29,7 +30,8 @@ def test_every_role_lists_every_implementation_and_marks_the_selected_one() -> N
     entries = by_key(available_devices(DevicesConfig(), probe=False))
     assert set(entries) == {("awg", "sim"), ("awg", "spectrum"), ("camera", "sim"), ("camera", "andor"),
                             ("frame_source", "sim"), ("frame_source", "andor"), ("frame_source", "activesilicon")}
-    assert [k for k, e in entries.items() if e["selected"]] == [("awg", "sim"), ("camera", "sim"), ("frame_source", "sim")]
+    selected = [k for k, e in entries.items() if e["selected"]]
+    assert selected == [("awg", "sim"), ("camera", "sim"), ("frame_source", "sim")]
     assert all(e["available"] for k, e in entries.items() if k[1] == "sim")
 
 
@@ -67,7 +69,9 @@ def _args(**kw: Any) -> argparse.Namespace:
     return argparse.Namespace(**{"config": None, "no_probe": True, "json": False, **kw})
 
 
-def test_the_command_prints_a_table_and_exits_0_when_the_selection_is_available(capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_command_prints_a_table_and_exits_0_when_the_selection_is_available(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     assert devices_cmd.cmd_devices(_args()) == 0
     out = capsys.readouterr().out
     assert out.splitlines()[0].split()[:4] == ["role", "device", "sel", "available"]
@@ -105,7 +109,7 @@ def test_llrs_has_the_devices_subcommand(capsys: pytest.CaptureFixture[str]) -> 
 
 def test_simulated_devices_come_with_the_lab_hooks() -> None:
     devices, lab = open_devices(SystemConfig())
-    assert lab is not None and hasattr(lab, "ground_truth")
+    assert lab is not None and hasattr(lab, "shot_report")
     assert type(devices.awg).__name__ == "SimAWG" and type(devices.camera).__name__ == "SimCamera"
 
 
@@ -197,8 +201,6 @@ def test_the_check_plays_only_the_idle_waveform_on_the_card(tmp_path: Path) -> N
     assert "M4i.6622-x8 s/n 12345" in results["AWG status"].detail
     assert "mV of" in results["idle waveform within the RF limits"].detail
     assert card.played and {p.segment for p in card.played} == {0} and card.violations == []
-    from engine.waveforms import WaveformBank
-
     hold = WaveformBank(config).hold()
     assert all(np.array_equal(p.data, hold) for p in card.played)
     assert not card.running

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ctypes
 import sys
+import time
 from typing import Any
 
 import numpy as np
@@ -16,7 +17,7 @@ from drivers.spectrum import SpectrumAWG
 from engine.card_rules import DMA_ALIGN_BYTES, decode_step, encode_step, page_aligned_zeros
 from engine.config import AWGConfig, DevicesConfig, config_from_dict
 from engine.devices import DeviceError, StepInfo
-from tests.fake_spcm import C, DRIVER_MISSING_TEXT, decode, install_broken_spcm, is_step_register, make_fake_spcm
+from tests.fake_spcm import DRIVER_MISSING_TEXT, C, decode, install_broken_spcm, is_step_register, make_fake_spcm
 
 N = 384  # samples per channel of one test slot: a multiple of 32 and the 1-channel minimum
 
@@ -370,11 +371,11 @@ class _Bank:
         return np.zeros((N, 1), dtype=np.int16)
 
     def lookup(self, ops: _Ops, first: int, count: int, keys: np.ndarray) -> None:
-        pass
+        self._looked_up = ops  # render() reads the slots of the last lookup, as the real bank does
 
-    def render(self, ops: _Ops, first: int, count: int, out: np.ndarray) -> None:
+    def render(self, first: int, count: int, out: np.ndarray) -> None:
         for i in range(count):
-            out[i * N:(i + 1) * N, 0] = ops.values[first + i]
+            out[i * N:(i + 1) * N, 0] = self._looked_up.values[first + i]
 
     def render_failsafe(self, ops: _Ops, i: int, out: np.ndarray) -> None:
         out[:N, 0] = -ops.values[i]
@@ -382,8 +383,6 @@ class _Bank:
 
 class _Clock:
     def now_s(self) -> float:
-        import time
-
         return time.monotonic()
 
 

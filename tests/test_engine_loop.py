@@ -11,6 +11,8 @@ import tracemalloc
 
 import numpy as np
 import pytest
+from conftest import lossless
+from sim_signals import chain_config
 
 from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
@@ -19,9 +21,6 @@ from engine.records import Outcome
 from engine.solvers import PlannerError
 from engine.timing import STAGES
 from server.cli import main as cli_main
-
-from conftest import lossless
-from sim_signals import chain_config
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +41,7 @@ def test_lossless_chain_shots_reach_the_target_in_the_world(chain_engine) -> Non
             continue
         solvable += 1
         rearrangements = sum(1 for c in record.cycles if c.n_slots > 0)
-        if record.truth["target_filled"] and rearrangements <= 2:
+        if record.lab_report["target_filled"] and rearrangements <= 2:
             filled_within_2 += 1
         assert record.outcome is Outcome.SUCCESS, (record.to_dict(), lab.world.counters, lab.awg.torn_plays)
     assert solvable >= 50
@@ -143,7 +142,7 @@ def test_cli_reports_a_bad_config(tmp_path, capsys: pytest.CaptureFixture[str]) 
 def test_occupancy_history_is_what_was_imaged(chain_engine) -> None:
     engine, lab = chain_engine
     record = engine.run_shot()
-    truth_rows = record.truth["occupancy_rows"]
+    truth_rows = record.lab_report["occupancy_rows"]
     last = record.cycles[-1].occupancy
     truth = np.array([[c == "1" for c in truth_rows[0]]])
     # detection fidelity is > 99.9 %, so the last image agrees with the world (lossless: nothing moved since)

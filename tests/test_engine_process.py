@@ -35,7 +35,7 @@ def test_shots_run_in_the_child_and_come_back_with_their_frame(engine_process: E
     assert ids == sorted(ids) and len(set(ids)) == 5  # commands run one after another
     for record, frame in records:
         assert record.outcome in (Outcome.SUCCESS, Outcome.UNSOLVABLE)
-        assert record.truth["target_filled"] == (record.outcome is Outcome.SUCCESS)  # the child's world judged it
+        assert record.lab_report["target_filled"] == (record.outcome is Outcome.SUCCESS)  # the child's world judged it
         assert isinstance(frame, np.ndarray) and frame.dtype == np.uint16
         assert frame.shape == frame_shape(engine_process.config.camera)  # the example's ROI and binning
 

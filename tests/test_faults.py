@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import INJECTED_FAULTS
+from sim_signals import chain_config
 
 from drivers.sim.lab import SimLab, build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine
 from engine.records import Outcome
-from sim_signals import chain_config
 
 
 def chain(**faults: object) -> SystemConfig:
@@ -34,19 +35,14 @@ def healthy_shot(engine: Engine) -> None:
         record = engine.run_shot()
         assert record.outcome in (Outcome.SUCCESS, Outcome.UNSOLVABLE), record.fault
         if record.outcome is Outcome.SUCCESS:
-            assert record.truth["target_filled"]
+            assert record.lab_report["target_filled"]
             return
     raise AssertionError("no solvable shot in 5 tries")
 
 
 @pytest.mark.parametrize(
     ("faults", "reason"),
-    [
-        ({"camera": "timeout"}, "camera: no frame within"),
-        ({"camera": "corrupt"}, "arrived corrupt"),
-        ({"awg_upload": "fail"}, "injected upload failure"),
-        ({"solver": "exception"}, "InjectedSolverFault"),
-    ],
+    INJECTED_FAULTS,
 )
 def test_fault_ends_the_shot_defined_and_clears(rig, faults: dict, reason: str) -> None:
     engine, lab = rig
@@ -73,7 +69,7 @@ def test_late_uploads_underrun_into_the_failsafe_and_still_fill_the_target(rig) 
         if record.outcome is Outcome.UNSOLVABLE:
             continue
         assert record.outcome is Outcome.SUCCESS, record.fault
-        assert record.truth["target_filled"]  # the failsafe paused the moves instead of dropping atoms
+        assert record.lab_report["target_filled"]  # the failsafe paused the moves instead of dropping atoms
         underruns += sum(c.underruns for c in record.cycles)
     assert underruns > 0
     healthy_shot(engine)

@@ -7,20 +7,20 @@ import struct
 import threading
 import time
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from server_fakes import FakeEngine, example_config
 
 from engine.engine import EngineThread
 from server.app import create_app
 from server.hub import LiveHub
 from server.runstore import RunStore
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
 
 
 def make_service(tmp_path: Path, **engine_kw: object) -> tuple[LabService, FakeEngine]:
@@ -186,31 +186,26 @@ def test_two_concurrent_shots_are_serialized(tmp_path: Path) -> None:
         service.close()
 
 
-def test_run_and_stop(client: TestClient) -> None:
+def test_run_and_stop(client: TestClient, wait_until: Callable[..., None]) -> None:
     r = client.post("/api/run")
     assert r.status_code == 200 and r.json()["running"] is True
-    deadline = time.monotonic() + 5
-    while client.get("/api/status").json()["shots_done"] < 3:
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
+    wait_until(lambda: client.get("/api/status").json()["shots_done"] >= 3, timeout_s=5, what="three shots")
     assert client.get("/api/status").json()["state"] == "running"
     assert client.post("/api/stop").json()["running"] is False
-    time.sleep(0.05)
+    wait_until(lambda: client.get("/api/status").json()["state"] == "idle", what="the shot in progress to end")
     done = client.get("/api/status").json()["shots_done"]
-    time.sleep(0.1)
+    time.sleep(0.1)  # a window for a shot that must not start: its absence has no event to wait on
     s = client.get("/api/status").json()
     assert s["shots_done"] == done and s["state"] == "idle"
 
 
 def test_fault_shows_in_status_and_stops_continuous_shots(
-    client: TestClient, lab: tuple[LabService, FakeEngine]
+    client: TestClient, lab: tuple[LabService, FakeEngine], wait_until: Callable[..., None]
 ) -> None:
     lab[1].fault = "DeviceError: AWG underrun"
     client.post("/api/run")
-    deadline = time.monotonic() + 5
-    while (s := client.get("/api/status").json())["state"] != "fault":
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
+    wait_until(lambda: client.get("/api/status").json()["state"] == "fault", timeout_s=5, what="the fault state")
+    s = client.get("/api/status").json()
     assert s["reason"] == "DeviceError: AWG underrun" and s["running"] is False
     client.post("/api/run")  # a person restarts: the fault is cleared
     assert client.get("/api/status").json()["state"] == "running"
@@ -373,7 +368,7 @@ def test_arm_then_trigger_runs_one_shot_each(client: TestClient) -> None:
     assert r.status_code == 200 and r.json() == {"armed": True, "trigger": "rest", "shots_left": None}
     s = client.get("/api/status").json()
     assert s["state"] == "armed" and s["armed"] and s["activity"] == "waiting for the trigger"
-    time.sleep(0.05)
+    time.sleep(0.05)  # a window for a shot that must not start: its absence has no event to wait on
     assert client.get("/api/status").json()["shots_done"] == 0  # armed does not run shots by itself
     first = client.post("/api/trigger").json()
     second = client.post("/api/trigger").json()
@@ -401,12 +396,13 @@ def test_bad_arm_is_422_and_leaves_state(client: TestClient, body: object) -> No
     assert client.get("/api/status").json()["state"] == "idle"
 
 
-def test_arm_stops_continuous_shots_and_run_disarms(client: TestClient) -> None:
+def test_arm_stops_continuous_shots_and_run_disarms(client: TestClient, wait_until: Callable[..., None]) -> None:
     client.post("/api/run")
     client.post("/api/arm")
-    time.sleep(0.05)
+    wait_until(lambda: client.get("/api/status").json()["activity"] == "waiting for the trigger",
+               what="the shot in progress to end")
     done = client.get("/api/status").json()["shots_done"]
-    time.sleep(0.1)
+    time.sleep(0.1)  # a window for a shot that must not start: its absence has no event to wait on
     s = client.get("/api/status").json()
     assert s["state"] == "armed" and s["running"] is False and s["shots_done"] == done
     client.post("/api/run")
@@ -428,7 +424,9 @@ def test_two_triggers_at_once_are_serialized(tmp_path: Path) -> None:
         with TestClient(create_app(service=service)) as c:
             c.post("/api/arm")
             codes: list[int] = []
-            threads = [threading.Thread(target=lambda: codes.append(c.post("/api/trigger").status_code)) for _ in range(2)]
+            threads = [
+                threading.Thread(target=lambda: codes.append(c.post("/api/trigger").status_code)) for _ in range(2)
+            ]
             for t in threads:
                 t.start()
             for t in threads:
@@ -438,13 +436,13 @@ def test_two_triggers_at_once_are_serialized(tmp_path: Path) -> None:
         service.close()
 
 
-def test_status_shows_running_during_a_shot(tmp_path: Path) -> None:
-    service, _ = make_service(tmp_path, shot_s=0.3)
+def test_status_shows_running_during_a_shot(tmp_path: Path, wait_until: Callable[..., None]) -> None:
+    service, engine = make_service(tmp_path, shot_s=0.3)
     try:
         with TestClient(create_app(service=service)) as c:
             t = threading.Thread(target=lambda: c.post("/api/shots"))
             t.start()
-            time.sleep(0.1)
+            wait_until(lambda: engine.in_shot > 0, what="the shot to start")
             s = c.get("/api/status").json()
             t.join()
             assert s["state"] == "running" and s["activity"] == "one shot"
@@ -485,7 +483,8 @@ def test_calibrate_threshold_returns_fit_without_applying(optics_lab: tuple[LabS
     assert r.json()["applied"]["applied"] is True
     cfg = c.get("/api/config").json()
     assert cfg["imaging"]["threshold"] == round(cal["threshold"], 3)
-    assert r.json()["config_digest"] != before and c.get("/api/status").json()["config_digest"] == r.json()["config_digest"]
+    digest = r.json()["config_digest"]
+    assert digest != before and c.get("/api/status").json()["config_digest"] == digest
 
 
 def test_calibrate_psf_finds_the_true_optics(optics_lab: tuple[LabService, TestClient]) -> None:

@@ -9,14 +9,15 @@ from pathlib import Path
 
 import h5py
 import pytest
+from conftest import INJECTED_FAULTS
 from fastapi.testclient import TestClient
+from sim_signals import chain_config
 
 from drivers.sim.lab import build_sim_lab
 from engine.engine import Engine, EngineThread
 from server.app import create_app
 from server.runstore import RunStore
 from server.service import LabService
-from sim_signals import chain_config
 
 NO_FAULTS = {"camera": "none", "awg_upload": "none", "upload_delay_s": 0.0, "solver": "none", "disk_full": False}
 
@@ -64,12 +65,7 @@ def good_shot(client: TestClient) -> dict:
 
 @pytest.mark.parametrize(
     ("faults", "reason"),
-    [
-        ({"camera": "timeout"}, "no frame within"),
-        ({"camera": "corrupt"}, "arrived corrupt"),
-        ({"awg_upload": "fail"}, "upload failure"),
-        ({"solver": "exception"}, "InjectedSolverFault"),
-    ],
+    INJECTED_FAULTS,
 )
 def test_fault_is_reported_and_clears(api, faults: dict, reason: str) -> None:
     client, runs, service = api

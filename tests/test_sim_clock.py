@@ -18,7 +18,7 @@ def test_paused_freezes_and_stays_monotonic() -> None:
     clock = SimClock("simulated")
     with clock.paused():
         frozen = clock.now_s()
-        time.sleep(0.02)
+        time.sleep(0.02)  # wall time passes on purpose: the paused clock must not follow it
         assert clock.now_s() == frozen
         clock.advance(1e-3)  # a device wait inside the pause still counts
         assert clock.now_s() == frozen + 1e-3
@@ -36,7 +36,7 @@ def test_realtime_advance_waits() -> None:
 def test_replay_clock_moves_only_by_device_waits_and_charged_host_stages() -> None:
     clock = SimClock("replay", {"III.solve": 30e-6})
     t0 = clock.now_s()
-    time.sleep(0.02)
+    time.sleep(0.02)  # wall time passes on purpose: the replay clock must not follow it
     assert clock.now_s() == t0  # wall time does not pass in replay
     clock.advance(1e-3)
     assert clock.charge is not None

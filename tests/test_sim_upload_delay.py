@@ -6,12 +6,12 @@ delay can only show as upload time, never as an underrun."""
 from __future__ import annotations
 
 import pytest
+from sim_signals import chain_config, grid_config
 
 from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine
 from engine.records import Outcome
-from sim_signals import chain_config, grid_config
 
 WAVEFORMS_PER_SEGMENT = SystemConfig().awg.waveforms_per_segment
 
@@ -37,7 +37,7 @@ def test_late_uploads_underrun_long_plans_at_the_default_segment_size(upload_del
     for _ in range(3):
         record = engine.run_shot()
         assert record.outcome is Outcome.SUCCESS, record.fault
-        assert record.truth["target_filled"]  # the failsafe paused the moves; no atom was dropped
+        assert record.lab_report["target_filled"]  # the failsafe paused the moves; no atom was dropped
         assert max(c.n_slots for c in record.cycles) > 2 * WAVEFORMS_PER_SEGMENT  # the segmented path
         underruns += sum(c.underruns for c in record.cycles)
     assert underruns > 0

@@ -7,11 +7,11 @@ import time
 
 import numpy as np
 import pytest
+from numba_twins import jit_and_python_outputs
 from scipy.optimize import linear_sum_assignment
 
 from engine.solvers import PlannerError, Solver, UnsolvableError, solve
 from engine.solvers.validate import validate
-from numba_twins import jit_and_python_outputs
 
 NY = NX = 32
 YY, XX = np.mgrid[:NY, :NX]
@@ -115,6 +115,7 @@ _BATCH_SCRIPT = """
 import json
 import numpy as np
 from engine.solvers import solve
+from tests.numba_twins import plan_summary
 out = []
 for seed in range(4):
     rng = np.random.default_rng(seed)
@@ -122,9 +123,7 @@ for seed in range(4):
     occ = rng.random((7, 9)) < 0.6
     if occ.sum() < mask.sum():
         continue
-    plan = solve(occ, mask, algorithm="assignment")
-    ops = plan.operations
-    out.append([plan.steps.tolist(), [ops.describe(i) for i in range(len(ops))]])
+    out.append(plan_summary(solve(occ, mask, algorithm="assignment")))
 print(json.dumps(out))
 """
 

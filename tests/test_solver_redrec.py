@@ -7,26 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from numba_twins import jit_and_python_outputs
 from scipy.optimize import linear_sum_assignment
 
+from bench.solvers import solvable_fillings
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations
 from engine.solvers.redrec import BATCHINGS, RedRecPlanner
 from engine.targets import centre_target
-from numba_twins import jit_and_python_outputs
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _instances(ny: int, nx: int, n: int, eps: float = 0.6, seed0: int = 0) -> list[np.ndarray]:
-    target_count = nx * ny // 2
-    out = []
-    seed = seed0
-    while len(out) < n:
-        occ = np.random.default_rng(seed).random((ny, nx)) < eps
-        seed += 1
-        if occ.sum() >= target_count:
-            out.append(occ)
-    return out
 
 
 def replay_operations(ops: Operations, occupancy: np.ndarray) -> np.ndarray:
@@ -91,7 +80,8 @@ def planners() -> dict[tuple[int, int, str], RedRecPlanner]:
 def test_plans_replay_and_fill_the_band(planners, ny: int, nx: int, n: int, batching: str) -> None:
     planner = planners[(ny, nx, batching)]
     target = centre_target(nx=nx, ny=ny, count=nx * ny // 2)
-    for occ in _instances(ny, nx, n):
+    fillings, _ = solvable_fillings(ny, nx, n, loading=0.6, need=nx * ny // 2)
+    for occ in fillings:
         n_steps = planner.solve_moves(occ, target)
         plan = planner.batch()
         assert plan.n_steps == n_steps and plan.algorithm == batching
@@ -105,7 +95,7 @@ def test_plans_replay_and_fill_the_band(planners, ny: int, nx: int, n: int, batc
 def test_wide_batching_is_shorter_with_the_same_moves(planners) -> None:
     target = centre_target(nx=16, ny=32, count=256)
     ref, wide = planners[(32, 16, "red-rec")], planners[(32, 16, "red-rec-wide")]
-    for occ in _instances(32, 16, 10):
+    for occ in solvable_fillings(32, 16, 10, loading=0.6, need=32 * 16 // 2)[0]:
         ref.solve_moves(occ, target)
         wide.solve_moves(occ, target)
         a, b = ref.batch(), wide.batch()
@@ -132,7 +122,7 @@ def test_few_atoms_per_column_and_dense_corners(planners) -> None:
 def test_displacement_near_l1_bound_16x32(planners) -> None:
     planner = planners[(32, 16, "red-rec")]
     target = centre_target(nx=16, ny=32, count=256)
-    occs = _instances(32, 16, 3)
+    occs = solvable_fillings(32, 16, 3, loading=0.6, need=32 * 16 // 2)[0]
     moves = sum(planner.solve_moves(occ, target) for occ in occs)
     bound = sum(l1_bound(occ, target) for occ in occs)
     assert moves <= 1.05 * bound
@@ -142,13 +132,13 @@ def test_displacement_near_l1_bound_16x32(planners) -> None:
 def test_displacement_near_l1_bound_32x64() -> None:
     planner = RedRecPlanner(32, 64, batching="red-rec")
     target = centre_target(nx=32, ny=64, count=1024)
-    for occ in _instances(64, 32, 20):
+    for occ in solvable_fillings(64, 32, 20, loading=0.6, need=64 * 32 // 2)[0]:
         assert planner.solve_moves(occ, target) <= 1.05 * l1_bound(occ, target)
 
 
 def test_target_must_be_a_full_width_band(planners) -> None:
     planner = planners[(16, 8, "red-rec")]
-    occ = _instances(16, 8, 1)[0]
+    occ = solvable_fillings(16, 8, 1, loading=0.6, need=16 * 8 // 2)[0][0]
     square = np.zeros((16, 8), dtype=bool)
     square[4:8, 2:6] = True
     with pytest.raises(ValueError, match="full-width band.*row 4 is only partly"):
@@ -177,6 +167,7 @@ _PLAN_SCRIPT = """
 import json, sys
 import numpy as np
 from engine.solvers.redrec import RedRecPlanner
+from tests.numba_twins import plan_summary
 from engine.targets import centre_target
 out = []
 for b in ("red-rec", "red-rec-wide"):
@@ -187,9 +178,7 @@ for b in ("red-rec", "red-rec-wide"):
         if occ.sum() < 64:
             continue
         p.solve_moves(occ, t)
-        plan = p.batch()
-        ops = plan.operations
-        out.append([plan.steps.tolist(), [ops.describe(i) for i in range(len(ops))]])
+        out.append(plan_summary(p.batch()))
 print(json.dumps(out))
 """
 

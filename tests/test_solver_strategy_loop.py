@@ -43,7 +43,7 @@ def test_lossless_strategy_fills_every_solvable_shot_and_disturbs_nothing_unplan
             assert r.fault is None, r.fault
             if r.outcome == Outcome.UNSOLVABLE:
                 continue
-            assert r.outcome == Outcome.SUCCESS and r.truth["target_filled"]
+            assert r.outcome == Outcome.SUCCESS and r.lab_report["target_filled"]
             assert sum(1 for c in r.cycles if c.n_slots > 0) <= 2
             first = r.cycles[0]
             assert first.planner == ("repair" if first.defects <= repair_at else "red-rec")

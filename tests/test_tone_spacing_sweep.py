@@ -49,7 +49,7 @@ def _sweep(base: SystemConfig, algorithms: tuple[str, ...], shots: int) -> None:
             assert counters.steps > steps, where  # atoms really moved
             for r in records:
                 if r.cycles and r.cycles[0].atoms >= base.target.count:
-                    assert r.truth.get("target_filled"), (where, r.outcome)
+                    assert r.lab_report.get("target_filled"), (where, r.outcome)
 
 
 def test_a_small_grid_loses_no_atom_at_any_accepted_spacing() -> None:

@@ -31,7 +31,7 @@ def cycle(index: int, occupancy: str, moves: list[list[int]] | None, counts: lis
 def shot(shot_id: int, cycles: list[CycleRecord], truth: str) -> ShotRecord:
     return ShotRecord(
         shot_id=shot_id, config_digest="d", algorithm="exact-1d", target=bits("0110"), outcome=Outcome.SUCCESS,
-        cycles=cycles, truth={"occupancy_rows": [truth], "target_filled": True},
+        cycles=cycles, lab_report={"occupancy_rows": [truth], "target_filled": True},
     )
 
 

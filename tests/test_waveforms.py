@@ -11,7 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.signal import hilbert
 from sim_signals import chain_config, grid_config
+from waveform_reference import ReferenceSynth
 
 from drivers.sim.decode import SampleDecoder
 from drivers.sim.world import World
@@ -20,24 +22,25 @@ from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations
 from engine.solvers.validate import InvalidPlan, replay
 from engine.waveforms import (
     CHAIN_KINDS,
-    INNER_UP,
     FADE_IN,
     FADE_OUT,
     FULL_SCALE,
+    INNER_UP,
     MOVE_DOWN,
     MOVE_UP,
     RAMP_DOWN,
     RAMP_UP,
     SLM_KINDS,
     STATIC,
-    ReferenceSynth,
     WaveformBank,
     axis_tones,
     continuous_phases,
     phase_track,
+    prefix_formula_bytes,
     shape_curve,
     table_formula_bytes,
 )
+from engine.waveforms.kernels import _RUN0
 
 ROOT = Path(__file__).resolve().parents[1]
 SHAPES = {"min-jerk": {"shape": "min-jerk"}, "tanh": {"shape": "tanh", "shape_sharpness": 6.0},
@@ -135,8 +138,6 @@ def test_axis_tones_csv_errors(tmp_path: Path, rows, header: str, match: str) ->
 def _tweezer_track(cfg, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Position (sites from k) of a tone that sits at k for a slot, moves to k + 1, sits there a slot: measured
     from the samples (instantaneous frequency of the analytic signal), and what a pure min-jerk move gives."""
-    from scipy.signal import hilbert
-
     b = WaveformBank(cfg)
     n = b.slot_samples
     if cfg.array.trap_source == "aod":  # a chain mover row is move - static: add the static tone back
@@ -426,16 +427,16 @@ def test_render_into_streamer_buffers_with_an_offset() -> None:
     keys = np.zeros(b.max_keys(4), np.int64)
     out = np.full((4 * b.slot_samples, 1), 99, np.int16)
     b.lookup(ops, 6, 4, keys)
-    b.render(ops, 6, 4, out)
+    b.render(6, 4, out)
     assert np.array_equal(out, whole[6 * b.slot_samples :])
     b.lookup(ops, 3, 2, keys)
-    b.render(ops, 3, 2, out)
+    b.render(3, 2, out)
     assert np.array_equal(out[: 2 * b.slot_samples], whole[3 * b.slot_samples : 5 * b.slot_samples])
     with pytest.raises(ValueError, match="lookup"):
-        b.render(ops, 4, 2, out)
+        b.render(4, 2, out)
     with pytest.raises(ValueError, match="C-contiguous int16"):
         b.lookup(ops, 3, 2, keys)
-        b.render(ops, 3, 2, out.astype(np.int32))
+        b.render(3, 2, out.astype(np.int32))
     with pytest.raises(ValueError, match="keys buffer"):
         b.lookup(ops, 0, 5, keys)
     with pytest.raises(ValueError, match="outside"):
@@ -538,7 +539,7 @@ def test_chain_plans_decode_and_move_atoms_where_planned(shape: str) -> None:
         for i in range(ops.n):
             _, _, xs, dxs = ops.tones(i)
             moves = sorted((int(r[0]), int(r[1])) for r in d.slot(i)[0] if r[0] != r[1])
-            assert moves == sorted((int(k), int(k + dk)) for k, dk in zip(xs, dxs) if dk), d.describe(i)
+            assert moves == sorted((int(k), int(k + dk)) for k, dk in zip(xs, dxs, strict=True) if dk), d.describe(i)
         world.apply_segment(d)
         assert np.array_equal(world.occupancy()[0], want)
         assert world.counters.lost == 0
@@ -640,7 +641,7 @@ def test_hot_paths_do_not_allocate() -> None:
             for n in (1, 16, 1, 16):
                 a0 = rtsys.get_allocation_stats().alloc
                 b.lookup(ops, 0, n, keys)
-                b.render(ops, 0, n, out)
+                b.render(0, n, out)
                 b.render_failsafe(ops, n - 1, out[: b.slot_samples])
                 counts.append(rtsys.get_allocation_stats().alloc - a0)
             assert len(set(counts[1:])) == 1, counts
@@ -717,8 +718,6 @@ def random_run_plan(rng, nx: int, ny: int, n_slots: int) -> Operations:
 
 
 def test_prefix_runs_render_bit_identically_to_single_rows() -> None:
-    from engine.waveforms import _RUN0, prefix_formula_bytes
-
     nx, ny = 12, 40
     cfg = grid_config(nx, ny)
     b = bank("grid-runs", cfg)

@@ -5,6 +5,9 @@ would. This module listens to each channel (ch0 = x AOD, ch1 = y AOD) and report
 axis, a list of **tone tracks**: ``(start site, end site, start amplitude fraction, end amplitude
 fraction)``. The world (``drivers/sim/world.py``) turns tracks into atom motion.
 
+It is one module over 600 lines on purpose: the window fit, the grid, the run detection and the checks of
+the resolution condition are one decoder whose parts share its constants and only make sense together.
+
 Method
 ------
 For every slot, five short windows (at the start, a quarter, the middle, three quarters and the end of the

@@ -1,11 +1,14 @@
 """The simulated lab: one world of atoms shared by a simulated camera and a simulated AWG.
 
-``build_sim_lab(config)`` returns the device set the engine drives and the lab hooks (load atoms before a
-shot, tell the ground truth after it). The engine cannot tell these devices from hardware: the camera
-renders the world's atoms, and the AWG moves them by decoding the samples it plays.
+``build_sim_lab(config)`` returns the device set the engine drives and the lab hooks (``engine.engine.Lab``:
+load atoms before a shot, report the world's truth after it, inject planner faults). The engine cannot tell
+these devices from hardware: the camera renders the world's atoms, and the AWG moves them by decoding the
+samples it plays.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
@@ -15,8 +18,32 @@ from drivers.sim.clock import SimClock
 from drivers.sim.world import World
 from engine.config import FaultConfig, SystemConfig
 from engine.devices import DeviceSet
+from engine.operations import Plan
+from engine.records import occupancy_to_rows
+from engine.solvers import Planner
 
-__all__ = ["SimLab", "build_sim_lab"]
+__all__ = ["InjectedSolverFault", "SimLab", "build_sim_lab"]
+
+
+class InjectedSolverFault(Exception):
+    """Raised by the planner when ``sim.faults.solver`` asks for it: stands in for a bug in a planner."""
+
+
+class _FailingPlanner:
+    """Wraps the configured planner and fails every solve (``sim.faults.solver: exception``)."""
+
+    def __init__(self, planner: Planner) -> None:
+        self._planner = planner
+        self.nx, self.ny = planner.nx, planner.ny
+
+    def check_target(self, target: np.ndarray) -> None:
+        self._planner.check_target(target)
+
+    def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
+        raise InjectedSolverFault("injected solver fault (sim.faults.solver = 'exception')")
+
+    def batch(self) -> Plan:
+        return self._planner.batch()
 
 
 class SimLab:
@@ -47,9 +74,20 @@ class SimLab:
         self.awg.sync()
         self.world.load()
 
+    def planner(self, planner: Planner, config: SystemConfig) -> Planner:
+        """The engine's planner, or one that fails every solve when ``config.sim.faults.solver`` injects it."""
+        return _FailingPlanner(planner) if config.sim.faults.solver == "exception" else planner
+
     def ground_truth(self) -> np.ndarray:
+        """``bool[ny, nx]``: the world's atoms now (the AWG's playback so far applied), a copy."""
         self.awg.sync()
         return self.world.occupancy().copy()
+
+    def shot_report(self, target: np.ndarray) -> dict[str, Any]:
+        """After a shot: the world's atoms (one '0'/'1' string per row) and whether they fill ``target``,
+        the success the engine could only judge from its images."""
+        truth = self.ground_truth()
+        return {"occupancy_rows": occupancy_to_rows(truth), "target_filled": bool(np.all(truth[target]))}
 
     def reseed(self, seed: int) -> None:
         """Restart the world's and the camera's random numbers from ``seed``, as ``build_sim_lab`` seeds them.

@@ -133,6 +133,7 @@ class Solver:
     ) -> None:
         if objective not in OBJECTIVES:
             raise PlannerError(f"solver.objective {objective!r} is not known; choose one of {', '.join(OBJECTIVES)}")
+        self.nx, self.ny = nx, ny  # the array it plans for (``Planner``)
         self.planner = _build(algorithm, nx, ny, trap_source, objective, loss)
         if repair_algorithm is not None:
             from engine.solvers.strategy import StrategyPlanner  # deferred: only a strategy needs it

@@ -58,7 +58,7 @@ LOSS_MODELS: dict[str, tuple[float, float] | None] = {
     "0.995/0.999": (0.995, 0.999),
     "0.985/0.985": (0.985, 0.985),
 }
-LOSS_CAUSES = ("transfer", "step", "vacuum", "collision", "dropped", "released")
+LOSS_CAUSES = ("transfer", "step", "vacuum", "imaging", "collision", "dropped", "released")
 
 
 @dataclass(frozen=True)

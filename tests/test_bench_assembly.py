@@ -13,6 +13,7 @@ import pytest
 from conftest import wait_until
 
 from bench.assembly import (
+    LOSS_CAUSES,
     Cell,
     CellResult,
     cell_config,
@@ -59,7 +60,7 @@ def test_cell_config_applies_the_cell_and_refuses_unknown_names() -> None:
 
 def test_summarize_counts_every_shot_by_hand() -> None:
     def shot(filled: bool, cycles: int, t: float | None, lost_step: int) -> dict:
-        lost = dict.fromkeys(("transfer", "step", "vacuum", "collision", "dropped", "released"), 0)
+        lost = dict.fromkeys(LOSS_CAUSES, 0)
         lost["step"] = lost_step
         return {
             "filled": filled, "engine_success": True, "outcome": "success", "rearrangements": cycles,

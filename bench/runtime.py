@@ -40,11 +40,12 @@ __all__ = ["PROBLEMS", "SOFTWARE_STAGES", "SOFTWARE_STAGES_WITH_RENDER", "cpu_ho
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: The paper's three problems and the example configs that pose them.
+#: The paper's three problems and the example configs that pose them, and the 8192-trap array labs build now.
 PROBLEMS: dict[str, str] = {
     "1x64": "examples/chain-1x64.yaml",
     "16x32": "examples/grid-16x32.yaml",
     "32x64": "examples/grid-32x64.yaml",
+    "64x128": "examples/grid-64x128.yaml",
 }
 
 #: The host's work from image in memory to the first two segments' slots looked up (upload excluded).

@@ -321,17 +321,21 @@ class Streamer:
         buf = self._segment_bufs[k % 2]
         self.awg.start_upload(self.layout.control_segment(k), buf[: count * self.bank.slot_samples])
 
-    def _finish_upload(self, ops: Operations, k: int, count: int, n_segments: int, report: StreamReport) -> None:
-        """Wait for control segment k's DMA, upload its failsafe, and point its step at the failsafe (or at
-        the plan's end step)."""
+    def _render_failsafe(self, ops: Operations, k: int, count: int, n_segments: int) -> None:
+        """Render control segment k's failsafe (the tones where its last slot leaves them) while its DMA runs,
+        so that only the failsafe's own upload and the step words follow the DMA (the last segment has none)."""
+        if k < n_segments - 1:
+            self.bank.render_failsafe(ops, k * self.slots_per_segment + count - 1, self._failsafe_buf)
+
+    def _finish_upload(self, k: int, n_segments: int, report: StreamReport) -> None:
+        """Wait for control segment k's DMA, upload its failsafe (rendered by ``_render_failsafe``), and
+        point its step at the failsafe (or at the plan's end step)."""
         lay = self.layout
         t_wait = self.clock.now_s()
         self.awg.wait_upload(timeout_s=self.timeout_s)
         report.max_upload_s = max(report.max_upload_s, self.clock.now_s() - t_wait)
         last = k == n_segments - 1
         if not last:
-            first = k * self.slots_per_segment
-            self.bank.render_failsafe(ops, first + count - 1, self._failsafe_buf)
             self.awg.write_segment(lay.failsafe_segment(k), self._failsafe_buf)
             self.awg.write_step(
                 lay.failsafe_step(k), StepInfo(segment=lay.failsafe_segment(k), next_step=lay.failsafe_step(k))
@@ -360,9 +364,11 @@ class Streamer:
         if timer is not None:
             timer.lap("IV.upload")
         count1 = self._render_segment(ops, 1, timer)  # while segment 0 uploads
-        self._finish_upload(ops, 0, count0, n_segments, report)
+        self._render_failsafe(ops, 0, count0, n_segments)
+        self._finish_upload(0, n_segments, report)
         self._start_upload(1, count1)
-        self._finish_upload(ops, 1, count1, n_segments, report)
+        self._render_failsafe(ops, 1, count1, n_segments)
+        self._finish_upload(1, n_segments, report)
         self._link(1)
         if timer is not None:
             timer.lap("IV.upload")
@@ -375,7 +381,8 @@ class Streamer:
             for k in range(2, n_segments):
                 self._start_upload(k, count)
                 count_next = self._render_segment(ops, k + 1, None) if k + 1 < n_segments else 0
-                self._finish_upload(ops, k, count, n_segments, report)
+                self._render_failsafe(ops, k, count, n_segments)
+                self._finish_upload(k, n_segments, report)
                 if report.underruns == 0:  # segments 0..k-1 played without pause: the card leaves k-1 then
                     slack_s = report.t_started_s + k * segment_s - self.clock.now_s()
                     report.min_slack_s = min(report.min_slack_s, slack_s)

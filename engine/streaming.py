@@ -33,7 +33,8 @@ of its playback time), so the lead the host keeps is at most the two segments up
 this: a host *preempted* for a scheduler slice (milliseconds, when a browser or an analysis script shares the
 engine's core) is. A deeper lead would buy that with latency (every segment uploaded ahead costs its DMA
 before the first slot plays), so instead the streamer keeps the scheduler away: from the first render to the
-plan's last link it runs at real-time priority (``SCHED_FIFO``, ``awg.stream_priority``), and drops back to
+plan's last link it runs at real-time priority (``SCHED_FIFO``, ``awg.stream_priority``; the engine enters
+the same window when the frame arrives, so detection and planning are covered too), and drops back to
 normal priority while the card plays the tail and the engine waits for the camera, so it never holds the
 core longer than one plan. Where the OS refuses (no ``CAP_SYS_NICE``/``RLIMIT_RTPRIO``) it streams at
 normal priority and says so (``Streamer.realtime_refused``). Each plan's report carries the smallest slack

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.runtime import REPO, SOFTWARE_STAGES_WITH_RENDER, software_latencies_us
+from bench.runtime import REPO, SOFTWARE_STAGES_WITH_RENDER, cpu_hogs, software_latencies_us
 from engine.config import load_config
 from engine.records import ShotRecord
 from server.runstore import RunStore
@@ -65,7 +65,7 @@ async def _clients(base: str, seconds: float, rate_hz: float, n_ws: int) -> dict
                     try:
                         await asyncio.wait_for(ws.recv(), timeout=max(0.01, deadline - time.perf_counter()))
                         received[i] += 1
-                    except asyncio.TimeoutError:
+                    except TimeoutError:
                         break
         except Exception as err:  # noqa: BLE001 - reported, not fatal
             ws_errors.append(f"{type(err).__name__}: {err}")
@@ -165,10 +165,12 @@ def _collect(service, seconds: float) -> list[ShotRecord]:  # noqa: ANN001
 
 
 def run_load_bench(
-    config_path: str, seconds: float, rate_hz: float, n_ws: int, *, in_process: bool = True, cpu: int | None = None
+    config_path: str, seconds: float, rate_hz: float, n_ws: int, *, in_process: bool = True, cpu: int | None = None,
+    hogs: int = 0,
 ) -> dict[str, Any]:
-    """Idle phase, then the load phase, each ``seconds`` long; the figures ``llrs bench load --json`` prints."""
-    with tempfile.TemporaryDirectory(prefix="llrs-load-") as runs:
+    """Idle phase, then the load phase, each ``seconds`` long, with ``hogs`` CPU-bound processes running beside
+    the server in both; the figures ``llrs bench load --json`` prints."""
+    with tempfile.TemporaryDirectory(prefix="llrs-load-") as runs, cpu_hogs(hogs):
         service, server, thread, base = _serve(config_path, runs, in_process=in_process, cpu=cpu)
         try:
             service.run()
@@ -191,27 +193,32 @@ def run_load_bench(
         "config": str(config_path),
         "engine": f"process on core {cpu}" if in_process and cpu is not None else "process" if in_process else "thread",
         "seconds_per_phase": seconds,
+        "cpu_hogs": hogs,
     }
     for phase, records in (("idle", idle), ("load", loaded)):
         result[phase] = {
             "shots": len(records),
+            "underruns": sum(c.underruns for r in records for c in r.cycles),
             "software_latency_us": _pct(software_latencies_us(records)),
             "software_latency_with_render_us": _pct(software_latencies_us(records, SOFTWARE_STAGES_WITH_RENDER)),
         }
     result["load"]["clients"] = clients
-    for key, growth in (("software_latency_us", "p99_growth"), ("software_latency_with_render_us", "p99_growth_with_render")):
+    for key, growth in (("software_latency_us", "p99_growth"),
+                        ("software_latency_with_render_us", "p99_growth_with_render")):
         p_idle, p_load = result["idle"][key]["p99"], result["load"][key]["p99"]
         result[growth] = (p_load / p_idle - 1.0) if p_idle and np.isfinite(p_idle) else float("nan")
     return result
 
 
 def _print(r: dict[str, Any]) -> None:
-    print(f"config {r['config']}, engine: {r['engine']}, {r['seconds_per_phase']:g} s per phase")
+    print(f"config {r['config']}, engine: {r['engine']}, {r['seconds_per_phase']:g} s per phase, "
+          f"{r['cpu_hogs']} CPU hogs beside it")
     for key, what, growth in (("software_latency_us", "II+III+IV.lookup", "p99_growth"),
                               ("software_latency_with_render_us", "... + IV.render", "p99_growth_with_render")):
         for phase in ("idle", "load"):
             s = r[phase][key]
-            print(f"{phase:5s}: {r[phase]['shots']:4d} shots, {s['n']:4d} rearranging cycles; {what} median "
+            print(f"{phase:5s}: {r[phase]['shots']:4d} shots, {s['n']:4d} rearranging cycles, "
+                  f"{r[phase]['underruns']} underruns; {what} median "
                   f"{s['median']:.1f} us, p99 {s['p99']:.1f} us, max {s['max']:.1f} us")
         print(f"p99 growth under load ({what}): {100 * r[growth]:+.1f} %")
     c = r["load"]["clients"]
@@ -224,7 +231,8 @@ def _print(r: dict[str, Any]) -> None:
 
 def _cmd(args: argparse.Namespace) -> int:
     result = run_load_bench(
-        args.config, args.seconds, args.rate, args.ws, in_process=args.engine == "process", cpu=args.engine_cpu
+        args.config, args.seconds, args.rate, args.ws, in_process=args.engine == "process", cpu=args.engine_cpu,
+        hogs=args.cpu_hogs,
     )
     print(json.dumps(result)) if args.json else _print(result)
     return 0
@@ -232,7 +240,8 @@ def _cmd(args: argparse.Namespace) -> int:
 
 def register(bench_sub: argparse._SubParsersAction) -> None:
     p = bench_sub.add_parser("load", help="engine latency idle vs while websocket and REST clients use the server")
-    p.add_argument("--config", default=str(REPO / "examples/grid-32x64.yaml"), help="configuration (default 32x64 red-rec)")
+    p.add_argument("--config", default=str(REPO / "examples/grid-32x64.yaml"),
+                   help="configuration (default 32x64 red-rec)")
     p.add_argument("--seconds", type=float, default=20.0, help="length of each phase (default 20 s)")
     p.add_argument("--rate", type=float, default=200.0, help="REST requests per second in total (default 200)")
     p.add_argument("--ws", type=int, default=20, help="websocket subscribers, one of which never reads (default 20)")
@@ -240,6 +249,8 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
                    help="the engine in a process of its own (default, as llrs serve) or on a thread of the server's")
     p.add_argument("--engine-cpu", type=engine_cpu_arg, default="auto",
                    help="core for the engine process ('auto': the last of two or more, a number, or 'none')")
+    p.add_argument("--cpu-hogs", type=int, default=0, metavar="N",
+                   help="run N CPU-bound processes beside the server in both phases (a busy lab PC; default 0)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd)
 

@@ -18,9 +18,13 @@ problem unsolvable stops after II).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import subprocess
+import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -31,16 +35,17 @@ from engine.records import ShotRecord
 from engine.timing import PAPER_TABLE1_MS, STAGES
 from server.serve import engine_cpu_arg
 
-__all__ = ["PROBLEMS", "SOFTWARE_STAGES", "SOFTWARE_STAGES_WITH_RENDER", "register", "runtime_figures", "run_problem",
-           "software_latencies_us"]
+__all__ = ["PROBLEMS", "SOFTWARE_STAGES", "SOFTWARE_STAGES_WITH_RENDER", "cpu_hogs", "register", "runtime_figures",
+           "run_problem", "software_latencies_us"]
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: The paper's three problems and the example configs that pose them.
+#: The paper's three problems and the example configs that pose them, and the 8192-trap array labs build now.
 PROBLEMS: dict[str, str] = {
     "1x64": "examples/chain-1x64.yaml",
     "16x32": "examples/grid-16x32.yaml",
     "32x64": "examples/grid-32x64.yaml",
+    "64x128": "examples/grid-64x128.yaml",
 }
 
 #: The host's work from image in memory to the first two segments' slots looked up (upload excluded).
@@ -91,9 +96,9 @@ def runtime_figures(records: list[ShotRecord], problem: str | None = None) -> di
                 slots.append(cycle.n_slots)
                 underruns += cycle.underruns
     paper = PAPER_TABLE1_MS.get(problem or "", {})
-    stages = {}
+    stages: dict[str, dict[str, Any]] = {}
     for stage in STAGES:
-        entry = _stats_us(samples[stage])
+        entry: dict[str, Any] = dict(_stats_us(samples[stage]))
         entry["paper_mean"] = paper[stage] * 1e3 if stage in paper else None
         stages[stage] = entry
     sw = _stats_us(_software_s(records, SOFTWARE_STAGES))
@@ -109,6 +114,21 @@ def runtime_figures(records: list[ShotRecord], problem: str | None = None) -> di
         "software_latency_with_render_us": {k: sw_render[k] for k in ("mean", "median", "p99", "max")},
         "latency_to_playback_us": {k: v for k, v in _stats_us(to_playback).items() if k != "n"},
     }
+
+
+@contextlib.contextmanager
+def cpu_hogs(count: int) -> Iterator[list[subprocess.Popen[bytes]]]:
+    """Run ``count`` CPU-bound processes beside the engine while the block runs: the browser, analysis script
+    and sequencer of a lab PC. They run at normal priority on any core (not pinned), as such programs do, and
+    are stopped (by their own process ids) when the block ends."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
+    try:
+        yield hogs
+    finally:
+        for hog in hogs:
+            hog.kill()
+        for hog in hogs:
+            hog.wait()
 
 
 def problem_config(problem: str, *, seed: int | None = None) -> SystemConfig:
@@ -145,7 +165,8 @@ def _print(figures: dict[str, dict[str, Any]]) -> None:
         print(f"\n== {problem}: {fig['shots']} shots, {fig['successes']} filled (world truth), "
               f"{fig['rearranging_cycles']} rearranging cycles, median {fig['slots_median']:.0f} slots, "
               f"{fig['underruns']} underruns")
-        print(f"{'stage':13s} {'mean':>10s} {'std':>9s} {'median':>10s} {'p99':>10s} {'max':>10s} {'paper':>10s}   (us)")
+        print(f"{'stage':13s} {'mean':>10s} {'std':>9s} {'median':>10s} {'p99':>10s} {'max':>10s} "
+              f"{'paper':>10s}   (us)")
         for stage, s in fig["stages"].items():
             if not s["n"]:
                 continue
@@ -187,7 +208,7 @@ def plot_stacked(figures: dict[str, dict[str, Any]], path: str | Path) -> None:
         ax.set_xticks(range(len(labels)), labels)
         ax.set_ylabel(f"mean time per rearranging cycle ({unit})")
         handles, names = ax.get_legend_handles_labels()
-        unique = dict(zip(names, handles))
+        unique = dict(zip(names, handles, strict=True))
         ax.legend(unique.values(), unique.keys(), fontsize=7, loc="upper left")
     axes[0].set_title("The whole cycle (camera and card: simulated models)")
     axes[1].set_title("Host stages II-IV (IV.upload left out; paper: IV.render is in its upload)")
@@ -203,11 +224,13 @@ def _cmd(args: argparse.Namespace) -> int:
     if unknown:
         raise SystemExit(f"llrs bench runtime: unknown problem(s) {unknown}; choose from {', '.join(PROBLEMS)}")
     figures: dict[str, dict[str, Any]] = {}
-    for problem in problems:
-        t0 = time.perf_counter()
-        records = run_problem(problem_config(problem, seed=args.seed), args.shots, cpu=args.engine_cpu)
-        figures[problem] = runtime_figures(records, problem)
-        figures[problem]["wall_s"] = time.perf_counter() - t0
+    with cpu_hogs(args.cpu_hogs):
+        for problem in problems:
+            t0 = time.perf_counter()
+            records = run_problem(problem_config(problem, seed=args.seed), args.shots, cpu=args.engine_cpu)
+            figures[problem] = runtime_figures(records, problem)
+            figures[problem]["wall_s"] = time.perf_counter() - t0
+            figures[problem]["cpu_hogs"] = args.cpu_hogs
     if args.json:
         print(json.dumps(figures))
     else:
@@ -225,6 +248,8 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--engine-cpu", type=engine_cpu_arg, default="auto",
                    help="core to run the engine on, as llrs serve pins it ('auto': the last of two or more, a "
                    "number, or 'none')")
+    p.add_argument("--cpu-hogs", type=int, default=0, metavar="N",
+                   help="run N CPU-bound processes beside the engine while it measures (a busy lab PC; default 0)")
     p.add_argument("--json", action="store_true", help="print one JSON object keyed by problem")
     p.add_argument("--plot", default=None, help="also write a stacked-bar PNG of the mean stage times here")
     p.set_defaults(func=_cmd)

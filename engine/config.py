@@ -291,6 +291,12 @@ class AWGConfig(_Model):
     upload_jitter_s: Annotated[float, Field(ge=0, le=1e-2)] = 5e-6
     step_write_s: Annotated[float, Field(ge=0, le=1e-2)] = 4e-6
     max_memory_bytes: Annotated[int, Field(ge=1, le=2**40)] = 2**32
+    stream_priority: Annotated[int, Field(ge=0, le=98)] = Field(
+        default=10,
+        description="real-time (SCHED_FIFO) priority the engine streams a plan at, from its first render to its "
+        "last link, so that a busy core cannot preempt it into an underrun; 0: normal priority. Needs "
+        "CAP_SYS_NICE or RLIMIT_RTPRIO; where the OS refuses, plans stream at normal priority",
+    )
 
 
 class LoopConfig(_Model):

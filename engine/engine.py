@@ -213,7 +213,10 @@ class Engine:
             for cycle in range(p.config.loop.max_cycles + 1):
                 p.timer.cycle = cycle
                 n_cycles = cycle + 1
-                outcome = self._cycle(p, cycle, latencies, plan_stats, cycle_times, planners)
+                try:
+                    outcome = self._cycle(p, cycle, latencies, plan_stats, cycle_times, planners)
+                finally:
+                    p.streamer.realtime.leave()  # a cycle that ends before streaming leaves it here
                 if outcome is not None:
                     record.outcome = outcome
                     break
@@ -295,6 +298,7 @@ class Engine:
         dev.camera.trigger()
         self._rehearse(p)
         dev.camera.read(p.image, timeout_s=p.config.camera.timeout_s)
+        p.streamer.realtime.enter()  # image to last link at real-time priority (engine.streaming)
         t_image = timer.lap("I.acquire")
         cycle_times[cycle, 1] = t_image
         p.detector.sum(p.image)

@@ -25,10 +25,26 @@ mobile tweezers where that segment left them (a pause, not a loss), and resumes 
 Plans of at most two segments' worth of slots take the short path: one upload, one pointer, no failsafe
 needed. Segments are written at their exact length (no padding to whole segments), so a 20-slot plan
 streams in 20 slots, not 64.
+
+**The worst case, not the mean.** Once playback starts, the host must link segment k+2 before the card
+finishes segment k+1; per segment it needs max(render, DMA) (the DMA of a 32-slot two-channel segment is ~80 %
+of its playback time), so the lead the host keeps is at most the two segments uploaded before the start
+(640 us at 10 us slots) plus a few tens of microseconds gained per segment. A slow render is not what breaks
+this: a host *preempted* for a scheduler slice (milliseconds, when a browser or an analysis script shares the
+engine's core) is. A deeper lead would buy that with latency (every segment uploaded ahead costs its DMA
+before the first slot plays), so instead the streamer keeps the scheduler away: from the first render to the
+plan's last link it runs at real-time priority (``SCHED_FIFO``, ``awg.stream_priority``; the engine enters
+the same window when the frame arrives, so detection and planning are covered too), and drops back to
+normal priority while the card plays the tail and the engine waits for the camera, so it never holds the
+core longer than one plan. Where the OS refuses (no ``CAP_SYS_NICE``/``RLIMIT_RTPRIO``) it streams at
+normal priority and says so (``Streamer.realtime_refused``). Each plan's report carries the smallest slack
+the host left the card (``min_slack_s``: how long before the card would have reached a failsafe each link
+arrived), which ``llrs bench streaming`` reports.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +57,7 @@ from engine.operations import Operations
 from engine.timing import StageTimer
 from engine.waveforms import WaveformBank
 
-__all__ = ["SequenceLayout", "StreamReport", "Streamer"]
+__all__ = ["RealtimeScheduling", "SequenceLayout", "StreamReport", "Streamer"]
 
 
 @dataclass(frozen=True)
@@ -106,6 +122,42 @@ class StreamReport:
     underruns: int = 0
     latency_s: float = 0.0  # from the start of rendering to the pointer that starts playback
     t_started_s: float = 0.0  # clock time of that pointer write
+    # the least time (s) any link of segment k arrived before the card, playing without pause, would have
+    # finished segment k-1 and fallen into its failsafe (negative: it did); inf for the short path
+    min_slack_s: float = float("inf")
+    max_upload_s: float = 0.0  # the longest wait for one segment's DMA after its render (s)
+
+
+class RealtimeScheduling:
+    """Switch the calling thread between real-time (``SCHED_FIFO`` at ``priority``) and normal scheduling.
+
+    Probed once at construction: if the OS refuses (no privilege, or not Linux), ``refused`` says why and
+    ``enter``/``leave`` do nothing. ``priority`` 0 turns it off."""
+
+    def __init__(self, priority: int) -> None:
+        self.priority = priority
+        self.refused: str | None = None
+        self._active = False
+        if priority == 0:
+            self.refused = "awg.stream_priority is 0"
+        elif not hasattr(os, "sched_setscheduler"):
+            self.refused = "this OS has no sched_setscheduler"
+        else:
+            try:
+                self.enter()
+                self.leave()
+            except OSError as err:
+                self.refused = f"SCHED_FIFO at priority {priority} refused ({err}); grant CAP_SYS_NICE or RLIMIT_RTPRIO"
+
+    def enter(self) -> None:
+        if self.refused is None and not self._active:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.priority))
+            self._active = True
+
+    def leave(self) -> None:
+        if self._active:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            self._active = False
 
 
 class Streamer:
@@ -119,6 +171,7 @@ class Streamer:
         self.slots_per_segment = config.awg.waveforms_per_segment
         self.timeout_s = 1.0
         self.home = self.layout.idle_step  # the idle step the card rests in between plans
+        self.realtime = RealtimeScheduling(config.awg.stream_priority)
         slot = bank.slot_samples
         ch = bank.n_channels
         # two segment buffers: the host renders segment k+1 into one while the card's DMA reads segment k;
@@ -139,6 +192,11 @@ class Streamer:
                 f"the sequence layout needs {total / 2**20:.0f} MiB of AWG memory but awg.max_memory_bytes is "
                 f"{config.awg.max_memory_bytes / 2**20:.0f} MiB; lower awg.n_segments or waveforms_per_segment"
             )
+
+    @property
+    def realtime_refused(self) -> str | None:
+        """Why plans stream at normal priority (``None``: they stream at real-time priority)."""
+        return self.realtime.refused
 
     @property
     def max_slots(self) -> int:
@@ -187,10 +245,14 @@ class Streamer:
                 f"({self.layout.n_control} control segments x {self.slots_per_segment}); "
                 "raise awg.n_segments or awg.waveforms_per_segment"
             )
-        if n <= 2 * self.slots_per_segment:
-            self._stream_short(ops, report, timer)
-        else:
-            self._stream_segments(ops, report, timer)
+        self.realtime.enter()
+        try:
+            if n <= 2 * self.slots_per_segment:
+                self._stream_short(ops, report, timer)
+            else:
+                self._stream_segments(ops, report, timer)
+        finally:
+            self.realtime.leave()
         return report
 
     def rehearse(self, ops: Operations) -> None:
@@ -201,7 +263,9 @@ class Streamer:
             self.bank.lookup(ops, 0, count, self._keys)
             self.bank.render(0, count, self._segment_bufs[1])
 
-    def _lookup_and_render(self, ops: Operations, first: int, count: int, out: np.ndarray, timer: StageTimer | None) -> None:
+    def _lookup_and_render(
+        self, ops: Operations, first: int, count: int, out: np.ndarray, timer: StageTimer | None
+    ) -> None:
         self.bank.lookup(ops, first, count, self._keys)
         if timer is not None:
             timer.lap("IV.lookup")
@@ -219,7 +283,9 @@ class Streamer:
         report.latency_s = report.t_started_s - t0
 
     def _finish(self, n_slots: int) -> None:
-        """Wait until the card rests in the plan's end step, which becomes home."""
+        """Wait (at normal priority: everything is linked) until the card rests in the plan's end step, which
+        becomes home."""
+        self.realtime.leave()
         away = self.away
         self.awg.wait_for_step(away, timeout_s=self.timeout_s + n_slots * self._slot_s())
         self.home = away
@@ -259,17 +325,25 @@ class Streamer:
         buf = self._segment_bufs[k % 2]
         self.awg.start_upload(self.layout.control_segment(k), buf[: count * self.bank.slot_samples])
 
-    def _finish_upload(self, ops: Operations, k: int, count: int, n_segments: int) -> None:
-        """Wait for control segment k's DMA, upload its failsafe, and point its step at the failsafe (or at
-        the plan's end step)."""
+    def _render_failsafe(self, ops: Operations, k: int, count: int, n_segments: int) -> None:
+        """Render control segment k's failsafe (the tones where its last slot leaves them) while its DMA runs,
+        so that only the failsafe's own upload and the step words follow the DMA (the last segment has none)."""
+        if k < n_segments - 1:
+            self.bank.render_failsafe(ops, k * self.slots_per_segment + count - 1, self._failsafe_buf)
+
+    def _finish_upload(self, k: int, n_segments: int, report: StreamReport) -> None:
+        """Wait for control segment k's DMA, upload its failsafe (rendered by ``_render_failsafe``), and
+        point its step at the failsafe (or at the plan's end step)."""
         lay = self.layout
+        t_wait = self.clock.now_s()
         self.awg.wait_upload(timeout_s=self.timeout_s)
+        report.max_upload_s = max(report.max_upload_s, self.clock.now_s() - t_wait)
         last = k == n_segments - 1
         if not last:
-            first = k * self.slots_per_segment
-            self.bank.render_failsafe(ops, first + count - 1, self._failsafe_buf)
             self.awg.write_segment(lay.failsafe_segment(k), self._failsafe_buf)
-            self.awg.write_step(lay.failsafe_step(k), StepInfo(segment=lay.failsafe_segment(k), next_step=lay.failsafe_step(k)))
+            self.awg.write_step(
+                lay.failsafe_step(k), StepInfo(segment=lay.failsafe_segment(k), next_step=lay.failsafe_step(k))
+            )
         next_step = self.away if last else lay.failsafe_step(k)
         self.awg.write_step(lay.control_step(k), StepInfo(segment=lay.control_segment(k), next_step=next_step))
 
@@ -294,9 +368,11 @@ class Streamer:
         if timer is not None:
             timer.lap("IV.upload")
         count1 = self._render_segment(ops, 1, timer)  # while segment 0 uploads
-        self._finish_upload(ops, 0, count0, n_segments)
+        self._render_failsafe(ops, 0, count0, n_segments)
+        self._finish_upload(0, n_segments, report)
         self._start_upload(1, count1)
-        self._finish_upload(ops, 1, count1, n_segments)
+        self._render_failsafe(ops, 1, count1, n_segments)
+        self._finish_upload(1, n_segments, report)
         self._link(1)
         if timer is not None:
             timer.lap("IV.upload")
@@ -304,11 +380,16 @@ class Streamer:
         if timer is not None:
             timer.lap("IV.sequence")
         if n_segments > 2:
+            segment_s = self.slots_per_segment * self._slot_s()
             count = self._render_segment(ops, 2, None)
             for k in range(2, n_segments):
                 self._start_upload(k, count)
                 count_next = self._render_segment(ops, k + 1, None) if k + 1 < n_segments else 0
-                self._finish_upload(ops, k, count, n_segments)
+                self._render_failsafe(ops, k, count, n_segments)
+                self._finish_upload(k, n_segments, report)
+                if report.underruns == 0:  # segments 0..k-1 played without pause: the card leaves k-1 then
+                    slack_s = report.t_started_s + k * segment_s - self.clock.now_s()
+                    report.min_slack_s = min(report.min_slack_s, slack_s)
                 if lay.is_failsafe_step(self.awg.current_step()):
                     report.underruns += 1
                 self._link(k)

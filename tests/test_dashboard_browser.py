@@ -25,6 +25,9 @@ import httpx
 import pytest
 from conftest import wait_until
 
+from engine.config import load_config
+from engine.psf import frame_shape
+
 ROOT = Path(__file__).resolve().parent.parent
 CHROMIUM = os.environ.get("LLRS_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -238,7 +241,8 @@ def test_sequencer_shot_over_rest_and_live_websocket(served: Served) -> None:
     last = len(shot["cycles"]) - 1
     png = httpx.get(f"{served.api}/api/shots/{shot['shot_id']}/image/{last}")  # the final frame is kept
     assert png.status_code == 200 and png.headers["content-type"] == "image/png"
-    assert png.content[16:24] == (1024).to_bytes(4, "big") + (16).to_bytes(4, "big")  # IHDR: 1024 x 16
+    height, width = frame_shape(load_config(ROOT / "examples/chain-1x64.yaml").camera)  # the served example's
+    assert png.content[16:24] == width.to_bytes(4, "big") + height.to_bytes(4, "big")  # IHDR: ROI, binned
     r = httpx.get(f"{served.api}/api/shots/{shot['shot_id']}/image/{last + 1}")
     assert r.status_code == 404 and "final frame" in r.json()["detail"]
     r = httpx.patch(served.api + "/api/config", json={"sim": {"loading_probability": 2}})

@@ -45,7 +45,7 @@ def test_a_lossless_8192_trap_shot_fills_its_target_in_two_cycles() -> None:
     finally:
         devices.close()
     assert record.outcome is Outcome.SUCCESS, record.fault
-    assert record.truth["target_filled"]
+    assert record.lab_report["target_filled"]
     assert len(record.cycles) <= 2
-    truth = np.array([[c == "1" for c in row] for row in record.truth["occupancy_rows"]])
+    truth = np.array([[c == "1" for c in row] for row in record.lab_report["occupancy_rows"]])
     assert np.array_equal(record.cycles[-1].occupancy, truth)  # detection agrees with the world, every trap

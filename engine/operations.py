@@ -82,7 +82,7 @@ class Operations:
             return
         old = (self.kind, self.y_site, self.y_delta, self.x_site, self.x_delta)
         self._alloc(capacity)
-        for new_arr, old_arr in zip((self.kind, self.y_site, self.y_delta, self.x_site, self.x_delta), old):
+        for new_arr, old_arr in zip((self.kind, self.y_site, self.y_delta, self.x_site, self.x_delta), old, strict=True):
             new_arr[: self.n] = old_arr[: self.n]
 
     def append(
@@ -123,7 +123,7 @@ class Operations:
         ys, dys, xs, dxs = self.tones(i)
         return (
             f"slot {i}: {OpKind(int(self.kind[i])).name} "
-            f"y={list(zip(ys.tolist(), dys.tolist()))} x={list(zip(xs.tolist(), dxs.tolist()))}"
+            f"y={list(zip(ys.tolist(), dys.tolist(), strict=True))} x={list(zip(xs.tolist(), dxs.tolist(), strict=True))}"
         )
 
 

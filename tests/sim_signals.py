@@ -92,7 +92,7 @@ def synth_axis(
     u = np.arange(n) / n
     phases = np.random.default_rng(seed).uniform(0, 2 * np.pi, len(tones))
     out = np.zeros(n)
-    for tone, phi in zip(tones, phases):
+    for tone, phi in zip(tones, phases, strict=True):
         pos = tone.site0 + (tone.site1 - tone.site0) * shape(u)
         f = np.interp(pos, sites, freqs)
         alpha = np.interp(pos, sites, alphas)

@@ -11,13 +11,13 @@ import h5py
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from server_fakes import FakeEngine, example_config
 
 from engine.engine import EngineThread
 from engine.records import CycleRecord, Outcome, ShotRecord
 from server.app import create_app
 from server.runstore import RunStore
 from server.service import LabService
+from server_fakes import FakeEngine, example_config
 
 TOKEN = "stats-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

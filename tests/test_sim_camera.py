@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from drivers.sim.camera import SimCamera, readout_time, trap_brightness
+from drivers.sim.camera import SimCamera, readout_time
 from drivers.sim.clock import SimClock
 from engine.config import CameraConfig, SystemConfig
 from engine.devices import Camera, DeviceError

@@ -17,7 +17,6 @@ from drivers.sim.world import World
 from engine.config import SystemConfig
 from engine.engine import Engine
 from engine.imaging import Detector
-
 from sim_signals import chain_config
 
 

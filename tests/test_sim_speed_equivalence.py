@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 from scipy.special import ndtr
-from sim_signals import Tone, chain_config, grid_config, synth_slots
 
 from drivers.sim.camera import (
     TABLE_ELECTRONS,
@@ -22,6 +21,7 @@ from drivers.sim.camera import (
 from drivers.sim.clock import SimClock
 from drivers.sim.decode import SampleDecoder
 from drivers.sim.world import World, _Uniforms
+from sim_signals import Tone, chain_config, grid_config, synth_slots
 
 # --- world ------------------------------------------------------------------------------------------------
 

@@ -114,7 +114,7 @@ def _check_chain_grammar(ops: Operations, nx: int) -> None:
         src, dst = xs[movers], ends[movers]
         if np.unique(dst).size != dst.size:
             raise _fail(ops, i, "two tones merge")
-        move_to = dict(zip(src.tolist(), dst.tolist()))
+        move_to = dict(zip(src.tolist(), dst.tolist(), strict=True))
         for s, d in move_to.items():
             if move_to.get(d) == s:
                 raise _fail(ops, i, f"tones at sites {s} and {d} cross")

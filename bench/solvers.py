@@ -30,6 +30,7 @@ import json
 import math
 import platform
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -114,7 +115,7 @@ def solvable_fillings(ny: int, nx: int, n: int, *, loading: float, need: int) ->
     return out, unsolvable
 
 
-def _pct(values: list[float] | np.ndarray, q: float) -> float:
+def _pct(values: Sequence[float] | np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if len(values) else float("nan")
 
 

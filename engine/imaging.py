@@ -165,7 +165,10 @@ def box_sums(
     width = image_u16.shape[1]
     box_rows, row_px = weights.shape[1], weights.shape[2]
     for i in range(origin_px.shape[0]):
-        out_f32[trap[i]] = _box_dot(flat, origin_px[i], width, flat_weights, i * box_rows * row_px, box_rows, row_px)
+        # numba's stubs give the @intrinsic's call the typing hook's signature (typingctx first): wrong at call sites
+        out_f32[trap[i]] = _box_dot(  # type: ignore[call-arg]
+            flat, origin_px[i], width, flat_weights, i * box_rows * row_px, box_rows, row_px
+        )
 
 
 @numba.njit(cache=True, nogil=True)

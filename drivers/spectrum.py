@@ -235,7 +235,10 @@ class SpectrumAWG:
             )
         rate = int(round(sample_rate_hz))
         if abs(rate - sample_rate_hz) > 1e-6:
-            raise DeviceError(f"Spectrum AWG: the sample rate must be a whole number of Hz (waveforms.sample_rate_hz = {sample_rate_hz!r})")
+            raise DeviceError(
+                "Spectrum AWG: the sample rate must be a whole number of Hz "
+                f"(waveforms.sample_rate_hz = {sample_rate_hz!r})"
+            )
         max_segments = card_rules.segment_partition(config.n_segments)
         if max_segments > self.info["max_segments"]:
             raise DeviceError(
@@ -355,7 +358,9 @@ class SpectrumAWG:
                 f"{card_rules.SEGMENT_STEP_SAMPLES} between {self._min_seg} and {self._max_seg}"
             )
         if not samples.flags.c_contiguous:
-            raise DeviceError(f"Spectrum AWG: segment {index}: samples must be C-contiguous (the DMA reads them in place)")
+            raise DeviceError(
+                f"Spectrum AWG: segment {index}: samples must be C-contiguous (the DMA reads them in place)"
+            )
         problem = None if self.rf_guard is None else self.rf_guard.problem(samples)
         if problem is not None:
             raise DeviceError(f"Spectrum AWG: segment {index} refused by the RF limits: {problem}")
@@ -415,7 +420,9 @@ class SpectrumAWG:
         if not 1 <= loops <= card_rules.SPCSEQ_LOOPMASK:
             raise DeviceError(f"Spectrum AWG: step {index}: loops must be 1..{card_rules.SPCSEQ_LOOPMASK}, got {loops}")
         if self._seg_len[seg] == 0:
-            raise DeviceError(f"Spectrum AWG: step {index} plays segment {seg}, which holds no samples yet; upload it first")
+            raise DeviceError(
+                f"Spectrum AWG: step {index} plays segment {seg}, which holds no samples yet; upload it first"
+            )
         word = card_rules.encode_step(seg, nxt, loops, on_trigger=step.on_trigger)
         try:
             self._card.set_i(self._R_STEPMEM0 + index, word)
@@ -429,7 +436,9 @@ class SpectrumAWG:
     def start(self, entry_step: int) -> None:
         """Start playback at ``entry_step`` now (forced start; later triggers end ``on_trigger`` loops)."""
         if self._card is None or not 0 <= entry_step < self._n_steps or self._step_seg[entry_step] < 0:
-            raise DeviceError(f"Spectrum AWG: cannot start at step {entry_step}: it was never written (or not configured)")
+            raise DeviceError(
+                f"Spectrum AWG: cannot start at step {entry_step}: it was never written (or not configured)"
+            )
         spcm = self._spcm
         assert spcm is not None
         try:

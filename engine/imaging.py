@@ -288,7 +288,11 @@ class Detector:
                     "the detector has no threshold: set imaging.threshold or calibrate it from frames "
                     "(Detector.calibrate; the engine does this when it applies imaging.threshold: null)"
                 )
-            if out_occupancy.size != self.n_traps or out_occupancy.dtype != np.bool_ or not out_occupancy.flags.c_contiguous:
+            if (
+                out_occupancy.size != self.n_traps
+                or out_occupancy.dtype != np.bool_
+                or not out_occupancy.flags.c_contiguous
+            ):
                 raise ValueError(f"out_occupancy must be a C-contiguous bool array with {self.n_traps} elements")
             self._checked_out = out_occupancy
         threshold(self.counts, self.thresholds, out_occupancy)

@@ -219,7 +219,8 @@ def fit_psf(images: np.ndarray, config: SystemConfig, *, rounds: int = 3) -> Psf
     usable = filled.any(axis=0)
     if not usable.any():
         raise ValueError("no trap held an atom in the calibration images; cannot fit the PSF")
-    mean_stamp = np.einsum("kn,knij->nij", weight[:, usable], stamps[:, usable]) / weight[:, usable].sum(axis=0)[:, None, None]
+    weighted_sum = np.einsum("kn,knij->nij", weight[:, usable], stamps[:, usable])
+    mean_stamp = weighted_sum / weight[:, usable].sum(axis=0)[:, None, None]
     fit = _StampFit(mean_stamp, xs[usable].astype(np.float64), ys[usable].astype(np.float64), inside[usable], (bx, by))
     centres = fit.centroids()
     for _ in range(rounds):

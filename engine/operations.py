@@ -124,7 +124,8 @@ class Operations:
         ys, dys, xs, dxs = self.tones(i)
         return (
             f"slot {i}: {OpKind(int(self.kind[i])).name} "
-            f"y={list(zip(ys.tolist(), dys.tolist(), strict=True))} x={list(zip(xs.tolist(), dxs.tolist(), strict=True))}"
+            f"y={list(zip(ys.tolist(), dys.tolist(), strict=True))} "
+            f"x={list(zip(xs.tolist(), dxs.tolist(), strict=True))}"
         )
 
 

@@ -196,7 +196,8 @@ class SimAWG:
             if self._dma_free_s - now > timeout_s:
                 self.clock.advance(timeout_s)
                 raise DeviceError(
-                    f"sim AWG: upload still running after {timeout_s:g} s; check upload_bytes_per_s and the segment size"
+                    f"sim AWG: upload still running after {timeout_s:g} s; "
+                    "check upload_bytes_per_s and the segment size"
                 )
             self.clock.advance_to(self._dma_free_s)
             self._sync()
@@ -225,7 +226,9 @@ class SimAWG:
         if problem is not None:
             raise DeviceError(f"sim AWG: segment {index} refused by the RF limits: {problem}")
         if self._running and self._pass_segment == index:
-            raise DeviceError(f"sim AWG: segment {index} is playing right now (step {self._step}); it cannot be written")
+            raise DeviceError(
+                f"sim AWG: segment {index} is playing right now (step {self._step}); it cannot be written"
+            )
         used = sum(s.data.nbytes for i, s in enumerate(self._latest_segments()) if s is not None and i != index)
         if used + samples.nbytes > self.awg_config.max_memory_bytes:
             raise DeviceError(

@@ -31,7 +31,9 @@ _CALIBRATION = Annotated[ThresholdCalibrationOut | PsfCalibrationOut, Field(disc
     summary="Acquire fresh frames and fit the occupancy threshold; returns the fit and its fidelity, "
     "applies nothing (see POST /api/calibrate/apply)",
 )
-def calibrate_threshold(service: Service, request: Annotated[CalibrationRequest | None, Body()] = None) -> dict[str, Any]:
+def calibrate_threshold(
+    service: Service, request: Annotated[CalibrationRequest | None, Body()] = None
+) -> dict[str, Any]:
     return service.calibrate_threshold(images=(request or CalibrationRequest()).images)
 
 

@@ -122,7 +122,12 @@ def synth_slots(
 
 def chain_config(nx: int = 16, **over) -> SystemConfig:
     data = {
-        "array": {"nx": nx, "ny": 1, "trap_source": "aod", "x_tones": {"start_hz": 70e6, "spacing_hz": 1e6, "amplitude": 0.015}},
+        "array": {
+            "nx": nx,
+            "ny": 1,
+            "trap_source": "aod",
+            "x_tones": {"start_hz": 70e6, "spacing_hz": 1e6, "amplitude": 0.015},
+        },
         "target": {"kind": "centre", "count": max(1, nx // 2)},
         "camera": {"roi_width_px": 16 * nx, "roi_height_px": 16},
         "awg": {"n_segments": 16, "n_steps": 64, "waveforms_per_segment": 4},

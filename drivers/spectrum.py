@@ -171,7 +171,7 @@ class SpectrumAWG:
         except DeviceError:
             card.close()
             raise
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             card.close()
             raise DeviceError(f"Spectrum AWG: {dev!r} opened but cannot be queried: {err}") from None
         self._card = card
@@ -201,7 +201,7 @@ class SpectrumAWG:
             card, self._card = self._card, None
             try:
                 card.close()
-            except Exception as err:  # noqa: BLE001
+            except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
                 raise DeviceError(f"Spectrum AWG: closing the card failed: {err}") from None
 
     # --- protocol: properties and setup ----------------------------------------------------------------
@@ -306,7 +306,7 @@ class SpectrumAWG:
             card.set_i(self._R_ASYNCIO, 0)
         except DeviceError:
             raise
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: configuring the card failed: {err}") from None
         self._n_channels = n_channels
         self._sample_rate_hz = float(rate)
@@ -403,7 +403,7 @@ class SpectrumAWG:
         try:
             for step in np.flatnonzero(self._step_hit):
                 card.set_i(base + int(step), words[step])
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: refreshing the steps of segment {segment} failed: {err}") from None
 
     def write_step(self, index: int, step: StepInfo) -> None:
@@ -426,7 +426,7 @@ class SpectrumAWG:
         word = card_rules.encode_step(seg, nxt, loops, on_trigger=step.on_trigger)
         try:
             self._card.set_i(self._R_STEPMEM0 + index, word)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: writing step {index} failed: {err}") from None
         self._step_words[index] = word
         self._step_seg[index] = seg
@@ -444,7 +444,7 @@ class SpectrumAWG:
         try:
             self._card.set_i(spcm.SPC_SEQMODE_STARTSTEP, entry_step)
             self._card.cmd(spcm.M2CMD_CARD_START | spcm.M2CMD_CARD_ENABLETRIGGER | spcm.M2CMD_CARD_FORCETRIGGER)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: starting playback failed: {err}") from None
         self._running = True
 
@@ -454,7 +454,7 @@ class SpectrumAWG:
             return -1
         try:
             return int(self._card.get_i(self._R_STATUS)) & card_rules.SPCSEQ_SEGMENTMASK
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: reading the current step failed: {err}") from None
 
     def wait_for_step(self, step: int, *, timeout_s: float) -> None:
@@ -490,7 +490,7 @@ class SpectrumAWG:
                 while time.perf_counter() < t_end:
                     pass
             card.set_i(reg, self._xio)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: pulsing the {line} line failed: {err}") from None
 
     def force_trigger(self) -> None:
@@ -500,7 +500,7 @@ class SpectrumAWG:
             raise DeviceError("Spectrum AWG: force_trigger before open()")
         try:
             self._card.cmd(spcm.M2CMD_CARD_FORCETRIGGER)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: software trigger failed: {err}") from None
 
     def stop(self) -> None:
@@ -510,5 +510,5 @@ class SpectrumAWG:
             return
         try:
             self._card.cmd(self._spcm.M2CMD_CARD_STOP)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: stopping the card failed: {err}") from None

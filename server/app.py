@@ -94,7 +94,7 @@ def create_app(
         )
     # Added last, so it runs first: nothing reads a body before the guard has looked at the headers.
     app.add_middleware(
-        RequestGuard,  # type: ignore[arg-type]
+        RequestGuard,
         token=token,
         trusted_hosts=trusted_hosts,
         cors_origins=cors_origins,

@@ -45,7 +45,7 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``serve`` on the ``llrs`` command line."""
     p = sub.add_parser(
         "serve",
@@ -106,7 +106,7 @@ def engine_host_factory(*, in_process: bool, cpu: int | None):  # noqa: ANN201 -
     from engine.engine import EngineThread
     from engine.process import EngineProcess
 
-    def host(config: SystemConfig):  # noqa: ANN202
+    def host(config: SystemConfig):  # noqa: ANN202 - an EngineProcess or EngineThread, imported lazily above
         build = partial(build_engine, config)
         return EngineProcess(build, cpu=cpu) if in_process else EngineThread(build)
 

@@ -70,4 +70,5 @@ def calibrations(service: Service) -> list[dict[str, Any]]:
 )
 def apply_calibration(service: Service, request: CalibrationApplyRequest) -> CalibrationApplyOut:
     applied = service.apply_calibration(request.id)
-    return CalibrationApplyOut(applied=applied, config_digest=service.config.digest())  # type: ignore[arg-type]
+    # validated from the service's plain dict: the discriminator ``kind`` picks the threshold or the PSF model
+    return CalibrationApplyOut.model_validate({"applied": applied, "config_digest": service.config.digest()})

@@ -40,36 +40,44 @@ def _time_us(call: Callable[[], object], repeats: int) -> tuple[float, float]:
     return float(np.median(samples)) / 1e3, float(np.percentile(samples, 99)) / 1e3
 
 
-def _cmd(args: argparse.Namespace) -> int:
+def _bench_config(name: str, config: SystemConfig, rng: np.random.Generator, repeats: int) -> None:
+    """Time both implementations on one configuration's simulated frames and print a row for each.
+
+    A function of its own so that the lambdas below close over this configuration's frame and detector only.
+    """
     # deferred on purpose: ``llrs`` imports every benchmark to list it; the imaging stack (scipy: about 1.5 s to import)
     # loads only when this benchmark runs
     from drivers.sim.camera import SimCamera
     from drivers.sim.clock import SimClock
     from engine.imaging import Detector, calibration_frames, threshold_reference, weighted_sums_reference
 
+    occupancy = rng.random((config.array.ny, config.array.nx)) < 0.6
+    camera = SimCamera(config, atoms=lambda *_: occupancy, clock=SimClock(), rng=rng)
+    frames = np.empty((calibration_frames(config.array.n_traps), *camera.frame_shape), dtype=np.uint16)
+    for frame in frames:
+        camera.trigger()
+        camera.read(frame, timeout_s=1.0)
+    detector = Detector(config)
+    detector.calibrate(frames)  # the threshold from frames, as the engine fits it at apply
+    image = frames[0]
+    out = np.empty_like(occupancy)
+    detector.detect(image, out)
+    assert np.array_equal(out, occupancy), "benchmark frame misdetected"
+    idx, w, thr = detector.psf.pixel_idx, detector.psf.weights, detector.thresholds
+    rows = {
+        "numba detect": lambda: detector.detect(image, out),
+        "numpy reference": lambda: threshold_reference(weighted_sums_reference(image, idx, w), thr),
+    }
+    for impl, call in rows.items():
+        median_us, p99_us = _time_us(call, repeats)
+        print(f"{name:36s} {impl:16s} {median_us:10.2f} {p99_us:10.2f}")
+
+
+def _cmd(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(7)
     print(f"{'configuration':36s} {'implementation':16s} {'median us':>10s} {'p99 us':>10s}")
     for name, config in _configs().items():
-        occupancy = rng.random((config.array.ny, config.array.nx)) < 0.6
-        camera = SimCamera(config, atoms=lambda *_: occupancy, clock=SimClock(), rng=rng)
-        frames = np.empty((calibration_frames(config.array.n_traps), *camera.frame_shape), dtype=np.uint16)
-        for frame in frames:
-            camera.trigger()
-            camera.read(frame, timeout_s=1.0)
-        detector = Detector(config)
-        detector.calibrate(frames)  # the threshold from frames, as the engine fits it at apply
-        image = frames[0]
-        out = np.empty_like(occupancy)
-        detector.detect(image, out)
-        assert np.array_equal(out, occupancy), "benchmark frame misdetected"
-        idx, w, thr = detector.psf.pixel_idx, detector.psf.weights, detector.thresholds
-        rows = {
-            "numba detect": lambda: detector.detect(image, out),
-            "numpy reference": lambda: threshold_reference(weighted_sums_reference(image, idx, w), thr),
-        }
-        for impl, call in rows.items():
-            median_us, p99_us = _time_us(call, args.repeats)
-            print(f"{name:36s} {impl:16s} {median_us:10.2f} {p99_us:10.2f}")
+        _bench_config(name, config, rng, args.repeats)
     return 0
 
 

@@ -30,6 +30,7 @@ import json
 import math
 import platform
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -114,7 +115,7 @@ def solvable_fillings(ny: int, nx: int, n: int, *, loading: float, need: int) ->
     return out, unsolvable
 
 
-def _pct(values: list[float] | np.ndarray, q: float) -> float:
+def _pct(values: Sequence[float] | np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if len(values) else float("nan")
 
 
@@ -305,7 +306,9 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
         "solvers", help="every planner on seeded random instances, validated (success under loss: bench assembly)"
     )
     p.add_argument("--instances", type=int, default=100, help="solvable instances per problem (default 100)")
-    p.add_argument("--scaling-instances", type=int, default=None, help="instances per scaling problem (default: --instances)")
+    p.add_argument(
+        "--scaling-instances", type=int, default=None, help="instances per scaling problem (default: --instances)"
+    )
     p.add_argument("--repeats", type=int, default=3, help="timed calls per instance, the fastest kept (default 3)")
     p.add_argument("--problems", default=None, help=f"comma-separated subset of {','.join(p.name for p in PROBLEMS)}")
     p.add_argument("--planners", default=None, help=f"comma-separated subset of {','.join(PLANNERS)}")

@@ -12,15 +12,16 @@ per configuration the camera's active region and the ROI (``PHX_CAM_ACTIVE_X/YLE
 (``PHX_DST_FORMAT_Y16``), one ROI line per buffer line (``PHX_BUF_DST_XLENGTH`` in bytes,
 ``PHX_BUF_DST_YLENGTH`` in lines, read back because the board may round the line length up) and the DMA
 timeout (``PHX_TIMEOUT_DMA``). Without them the buffer keeps the camera file's layout, typically the full
-sensor width, and a ROI copied as contiguous lines comes out sheared. Per frame ``PHX_StreamRead(PHX_START)`` (armed before the
-exposure is triggered), ``PHX_CHECK_AND_WAIT`` (blocks until the frame event), ``PHX_BUFFER_GET``, a copy out
-of the grabber's buffer, ``PHX_STOP`` and ``PHX_BUFFER_RELEASE``, then ``PHX_START`` again to arm for the next
-frame. ``PHX_CHECK_AND_WAIT`` has no timeout of its own: a watchdog thread aborts the stream
-(``PHX_ABORT``) at the deadline, which makes the wait return; the next read re-arms the stream.
+sensor width, and a ROI copied as contiguous lines comes out sheared. Per frame ``PHX_StreamRead(PHX_START)`` (armed
+before the exposure is triggered), ``PHX_CHECK_AND_WAIT`` (blocks until the frame event), ``PHX_BUFFER_GET``, a copy
+out of the grabber's buffer, ``PHX_STOP`` and ``PHX_BUFFER_RELEASE``, then ``PHX_START`` again to arm for the next
+frame. ``PHX_CHECK_AND_WAIT`` has no timeout of its own: a watchdog thread aborts the stream (``PHX_ABORT``) at the
+deadline, which makes the wait return; the next read re-arms the stream.
 
 Parameter identifiers are computed from the header's scheme (function group in the top bits, parameter number
-``<< 8``), so no header is needed at run time; the functions get the header's prototypes (``PROTOTYPES``). This adapter has been exercised only against the fake in
-``tests/fake_activesilicon.py``; check it on the lab PC with ``llrs devices`` and a test shot.
+``<< 8``), so no header is needed at run time; the functions get the header's prototypes (``PROTOTYPES``).
+This adapter has been exercised only against the fake in ``tests/fake_activesilicon.py``; check it on the lab
+PC with ``llrs devices`` and a test shot.
 """
 
 from __future__ import annotations
@@ -260,7 +261,9 @@ class ActiveSiliconFrameSource:
             return
         s = self.settings
         if not s.config_file:
-            raise DeviceError("Active Silicon: devices.activesilicon.config_file (the iXon's .pcf camera file) is not set")
+            raise DeviceError(
+                "Active Silicon: devices.activesilicon.config_file (the iXon's .pcf camera file) is not set"
+            )
         if not Path(s.config_file).is_file():
             raise DeviceError(
                 f"Active Silicon: camera configuration file {s.config_file!r} does not exist "

@@ -175,7 +175,8 @@ def _probe_activesilicon(d: DevicesConfig, probe: bool, phx_library: Any) -> tup
     except DeviceError as err:
         return False, str(err)
     source.close()
-    return True, f"board {d.activesilicon.board} channel {d.activesilicon.channel} opens with {d.activesilicon.config_file}"
+    grabber = d.activesilicon
+    return True, f"board {grabber.board} channel {grabber.channel} opens with {grabber.config_file}"
 
 
 def available_devices(

@@ -171,7 +171,7 @@ class SpectrumAWG:
         except DeviceError:
             card.close()
             raise
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             card.close()
             raise DeviceError(f"Spectrum AWG: {dev!r} opened but cannot be queried: {err}") from None
         self._card = card
@@ -201,7 +201,7 @@ class SpectrumAWG:
             card, self._card = self._card, None
             try:
                 card.close()
-            except Exception as err:  # noqa: BLE001
+            except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
                 raise DeviceError(f"Spectrum AWG: closing the card failed: {err}") from None
 
     # --- protocol: properties and setup ----------------------------------------------------------------
@@ -235,7 +235,10 @@ class SpectrumAWG:
             )
         rate = int(round(sample_rate_hz))
         if abs(rate - sample_rate_hz) > 1e-6:
-            raise DeviceError(f"Spectrum AWG: the sample rate must be a whole number of Hz (waveforms.sample_rate_hz = {sample_rate_hz!r})")
+            raise DeviceError(
+                "Spectrum AWG: the sample rate must be a whole number of Hz "
+                f"(waveforms.sample_rate_hz = {sample_rate_hz!r})"
+            )
         max_segments = card_rules.segment_partition(config.n_segments)
         if max_segments > self.info["max_segments"]:
             raise DeviceError(
@@ -303,7 +306,7 @@ class SpectrumAWG:
             card.set_i(self._R_ASYNCIO, 0)
         except DeviceError:
             raise
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: configuring the card failed: {err}") from None
         self._n_channels = n_channels
         self._sample_rate_hz = float(rate)
@@ -355,7 +358,9 @@ class SpectrumAWG:
                 f"{card_rules.SEGMENT_STEP_SAMPLES} between {self._min_seg} and {self._max_seg}"
             )
         if not samples.flags.c_contiguous:
-            raise DeviceError(f"Spectrum AWG: segment {index}: samples must be C-contiguous (the DMA reads them in place)")
+            raise DeviceError(
+                f"Spectrum AWG: segment {index}: samples must be C-contiguous (the DMA reads them in place)"
+            )
         problem = None if self.rf_guard is None else self.rf_guard.problem(samples)
         if problem is not None:
             raise DeviceError(f"Spectrum AWG: segment {index} refused by the RF limits: {problem}")
@@ -398,7 +403,7 @@ class SpectrumAWG:
         try:
             for step in np.flatnonzero(self._step_hit):
                 card.set_i(base + int(step), words[step])
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: refreshing the steps of segment {segment} failed: {err}") from None
 
     def write_step(self, index: int, step: StepInfo) -> None:
@@ -415,11 +420,13 @@ class SpectrumAWG:
         if not 1 <= loops <= card_rules.SPCSEQ_LOOPMASK:
             raise DeviceError(f"Spectrum AWG: step {index}: loops must be 1..{card_rules.SPCSEQ_LOOPMASK}, got {loops}")
         if self._seg_len[seg] == 0:
-            raise DeviceError(f"Spectrum AWG: step {index} plays segment {seg}, which holds no samples yet; upload it first")
+            raise DeviceError(
+                f"Spectrum AWG: step {index} plays segment {seg}, which holds no samples yet; upload it first"
+            )
         word = card_rules.encode_step(seg, nxt, loops, on_trigger=step.on_trigger)
         try:
             self._card.set_i(self._R_STEPMEM0 + index, word)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: writing step {index} failed: {err}") from None
         self._step_words[index] = word
         self._step_seg[index] = seg
@@ -429,13 +436,15 @@ class SpectrumAWG:
     def start(self, entry_step: int) -> None:
         """Start playback at ``entry_step`` now (forced start; later triggers end ``on_trigger`` loops)."""
         if self._card is None or not 0 <= entry_step < self._n_steps or self._step_seg[entry_step] < 0:
-            raise DeviceError(f"Spectrum AWG: cannot start at step {entry_step}: it was never written (or not configured)")
+            raise DeviceError(
+                f"Spectrum AWG: cannot start at step {entry_step}: it was never written (or not configured)"
+            )
         spcm = self._spcm
         assert spcm is not None
         try:
             self._card.set_i(spcm.SPC_SEQMODE_STARTSTEP, entry_step)
             self._card.cmd(spcm.M2CMD_CARD_START | spcm.M2CMD_CARD_ENABLETRIGGER | spcm.M2CMD_CARD_FORCETRIGGER)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: starting playback failed: {err}") from None
         self._running = True
 
@@ -445,7 +454,7 @@ class SpectrumAWG:
             return -1
         try:
             return int(self._card.get_i(self._R_STATUS)) & card_rules.SPCSEQ_SEGMENTMASK
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: reading the current step failed: {err}") from None
 
     def wait_for_step(self, step: int, *, timeout_s: float) -> None:
@@ -481,7 +490,7 @@ class SpectrumAWG:
                 while time.perf_counter() < t_end:
                     pass
             card.set_i(reg, self._xio)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: pulsing the {line} line failed: {err}") from None
 
     def force_trigger(self) -> None:
@@ -491,7 +500,7 @@ class SpectrumAWG:
             raise DeviceError("Spectrum AWG: force_trigger before open()")
         try:
             self._card.cmd(spcm.M2CMD_CARD_FORCETRIGGER)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: software trigger failed: {err}") from None
 
     def stop(self) -> None:
@@ -501,5 +510,5 @@ class SpectrumAWG:
             return
         try:
             self._card.cmd(self._spcm.M2CMD_CARD_STOP)
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: stopping the card failed: {err}") from None

@@ -165,7 +165,10 @@ def box_sums(
     width = image_u16.shape[1]
     box_rows, row_px = weights.shape[1], weights.shape[2]
     for i in range(origin_px.shape[0]):
-        out_f32[trap[i]] = _box_dot(flat, origin_px[i], width, flat_weights, i * box_rows * row_px, box_rows, row_px)
+        # numba's stubs give the @intrinsic's call the typing hook's signature (typingctx first): wrong at call sites
+        out_f32[trap[i]] = _box_dot(  # type: ignore[call-arg]
+            flat, origin_px[i], width, flat_weights, i * box_rows * row_px, box_rows, row_px
+        )
 
 
 @numba.njit(cache=True, nogil=True)
@@ -285,7 +288,11 @@ class Detector:
                     "the detector has no threshold: set imaging.threshold or calibrate it from frames "
                     "(Detector.calibrate; the engine does this when it applies imaging.threshold: null)"
                 )
-            if out_occupancy.size != self.n_traps or out_occupancy.dtype != np.bool_ or not out_occupancy.flags.c_contiguous:
+            if (
+                out_occupancy.size != self.n_traps
+                or out_occupancy.dtype != np.bool_
+                or not out_occupancy.flags.c_contiguous
+            ):
                 raise ValueError(f"out_occupancy must be a C-contiguous bool array with {self.n_traps} elements")
             self._checked_out = out_occupancy
         threshold(self.counts, self.thresholds, out_occupancy)

@@ -77,9 +77,9 @@ class ThresholdCalibration:
 class Population:
     """A shifted gamma, ``loc + Gamma(shape, scale)``, given by mean, std and skewness (arrays broadcast)."""
 
-    mean: np.ndarray
-    std: np.ndarray
-    skew: np.ndarray
+    mean: np.ndarray | float  # per trap, or one value for all
+    std: np.ndarray | float
+    skew: np.ndarray | float
 
     @property
     def _params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -94,11 +94,11 @@ class Population:
         value = (shape - 1) * np.log(z) - z - gammaln(shape) - np.log(scale)
         return np.where(x > loc, value, -np.inf)
 
-    def cdf(self, x: np.ndarray) -> np.ndarray:
+    def cdf(self, x: np.ndarray | float) -> np.ndarray:
         shape, scale, loc = self._params
         return gammainc(shape, np.maximum((x - loc) / scale, 0.0))
 
-    def sf(self, x: np.ndarray) -> np.ndarray:
+    def sf(self, x: np.ndarray | float) -> np.ndarray:
         shape, scale, loc = self._params
         return gammaincc(shape, np.maximum((x - loc) / scale, 0.0))
 
@@ -117,7 +117,9 @@ def min_error_threshold(empty: Population, atom: Population, fraction_filled: fl
     return 0.5 * (lo + hi)
 
 
-def error_probability(threshold: np.ndarray, empty: Population, atom: Population, fraction_filled: float) -> np.ndarray:
+def error_probability(
+    threshold: np.ndarray | float, empty: Population, atom: Population, fraction_filled: float
+) -> np.ndarray:
     """P(wrong assignment) at ``threshold``: empty read above it or atom read at/below it."""
     return (1 - fraction_filled) * empty.sf(threshold) + fraction_filled * atom.cdf(threshold)
 
@@ -217,7 +219,8 @@ def fit_psf(images: np.ndarray, config: SystemConfig, *, rounds: int = 3) -> Psf
     usable = filled.any(axis=0)
     if not usable.any():
         raise ValueError("no trap held an atom in the calibration images; cannot fit the PSF")
-    mean_stamp = np.einsum("kn,knij->nij", weight[:, usable], stamps[:, usable]) / weight[:, usable].sum(axis=0)[:, None, None]
+    weighted_sum = np.einsum("kn,knij->nij", weight[:, usable], stamps[:, usable])
+    mean_stamp = weighted_sum / weight[:, usable].sum(axis=0)[:, None, None]
     fit = _StampFit(mean_stamp, xs[usable].astype(np.float64), ys[usable].astype(np.float64), inside[usable], (bx, by))
     centres = fit.centroids()
     for _ in range(rounds):

@@ -125,16 +125,17 @@ class MoveState:
 def tweezer_slot(
     yt: np.ndarray, xt: np.ndarray, full_fraction: float,
     static: np.ndarray, held: np.ndarray, held_mark: np.ndarray, ids: np.ndarray, atom_stats: np.ndarray,
-    track_ids: bool, arrivals: np.ndarray, tw: np.ndarray, u: np.ndarray, pos: int, draw_transfer: bool, p_transfer: float, draw_step: bool, p_step: float,
+    track_ids: bool, arrivals: np.ndarray, tw: np.ndarray, u: np.ndarray, pos: int,
+    draw_transfer: bool, p_transfer: float, draw_step: bool, p_step: float,
     events: np.ndarray,
 ) -> int:  # fmt: skip
     """One slot of product-set tweezers (tweezer t = y track i x x track j, t = i * mx + j). Returns ``pos``.
 
-    Scratch: ``arrivals`` (per site) and ``tw`` (at least ``my * mx`` rows; columns: full depth at start,
-    at end, loaded, moved, atom id, how it was taken, end row, end column). ``ids[0]``/``ids[1]``: identities of the atoms in
-    static traps / tweezers (read and written only with ``track_ids``). Tracks from a real slot never share a site; when
-    they do, the first tweezer (in ``t`` order) over a site takes what is there, and every atom that ends a
-    slot at a site together with another is lost in the collision.
+    Scratch: ``arrivals`` (per site) and ``tw`` (at least ``my * mx`` rows; columns: full depth at start, at end,
+    loaded, moved, atom id, how it was taken, end row, end column). ``ids[0]``/``ids[1]``: identities of the atoms
+    in static traps / tweezers (read and written only with ``track_ids``). Tracks from a real slot never share a
+    site; when they do, the first tweezer (in ``t`` order) over a site takes what is there, and every atom that ends
+    a slot at a site together with another is lost in the collision.
     """
     ny, nx = static.shape
     my = yt.shape[0]

@@ -80,9 +80,10 @@ class Operations:
         """Grow the buffers to hold at least ``capacity`` slots (done when a configuration is applied)."""
         if capacity <= self.capacity:
             return
-        old = (self.kind, self.y_site, self.y_delta, self.x_site, self.x_delta)
+        old: tuple[np.ndarray, ...] = (self.kind, self.y_site, self.y_delta, self.x_site, self.x_delta)
         self._alloc(capacity)
-        for new_arr, old_arr in zip((self.kind, self.y_site, self.y_delta, self.x_site, self.x_delta), old):
+        new: tuple[np.ndarray, ...] = (self.kind, self.y_site, self.y_delta, self.x_site, self.x_delta)
+        for new_arr, old_arr in zip(new, old, strict=True):
             new_arr[: self.n] = old_arr[: self.n]
 
     def append(
@@ -123,7 +124,8 @@ class Operations:
         ys, dys, xs, dxs = self.tones(i)
         return (
             f"slot {i}: {OpKind(int(self.kind[i])).name} "
-            f"y={list(zip(ys.tolist(), dys.tolist()))} x={list(zip(xs.tolist(), dxs.tolist()))}"
+            f"y={list(zip(ys.tolist(), dys.tolist(), strict=True))} "
+            f"x={list(zip(xs.tolist(), dxs.tolist(), strict=True))}"
         )
 
 

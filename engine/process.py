@@ -206,9 +206,8 @@ class EngineProcess(EngineCommands):
         except Exception as err:  # an unpicklable command, or the pipe is gone
             with self._pending_lock:
                 self._pending.pop(ident, None)
-            future.set_exception(
-                err if isinstance(err, (pickle.PicklingError, AttributeError, TypeError)) else EngineProcessDied(str(err))
-            )
+            unpicklable = isinstance(err, (pickle.PicklingError, AttributeError, TypeError))
+            future.set_exception(err if unpicklable else EngineProcessDied(str(err)))
         return future
 
     def close(self, *, timeout_s: float = 10.0) -> None:

@@ -94,7 +94,7 @@ def create_app(
         )
     # Added last, so it runs first: nothing reads a body before the guard has looked at the headers.
     app.add_middleware(
-        RequestGuard,  # type: ignore[arg-type]
+        RequestGuard,
         token=token,
         trusted_hosts=trusted_hosts,
         cors_origins=cors_origins,
@@ -111,7 +111,7 @@ def create_app(
                     method
                     for route in app.router.routes
                     if isinstance(route, APIRoute) and route.path_regex.match(request.url.path)
-                    for method in route.methods
+                    for method in route.methods or ()  # Starlette types it Optional; an APIRoute always has a set
                 }
             )
             return JSONResponse({"detail": exc.detail}, status_code=405, headers={"Allow": ", ".join(allowed)})

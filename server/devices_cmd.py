@@ -42,7 +42,7 @@ READOUT_TOLERANCE = 1.5
 STEP_TIMEOUT_S = 1.0
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``devices`` subcommand to the ``llrs`` parser."""
     p = sub.add_parser(
         "devices",

@@ -93,12 +93,16 @@ class RequestGuard:
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         host = headers.get("host", "")
         if self.trusted_hosts is not None and _host_name(host) not in self.trusted_hosts:
-            await self._refuse(scope, send, 400, f"untrusted Host header; this server answers to {sorted(self.trusted_hosts)}")
+            await self._refuse(
+                scope, send, 400, f"untrusted Host header; this server answers to {sorted(self.trusted_hosts)}"
+            )
             return
         mutating = scope["type"] == "websocket" or scope["method"] in MUTATING
         origin = headers.get("origin")
         if mutating and origin is not None and not self._origin_ok(origin, host):
-            await self._refuse(scope, send, 403, "cross-origin request refused: start llrs serve with --cors-origin to allow an origin")
+            await self._refuse(
+                scope, send, 403, "cross-origin request refused: start llrs serve with --cors-origin to allow an origin"
+            )
             return
         if scope["type"] == "websocket" or scope["method"] not in MUTATING:
             await self.app(scope, receive, send)

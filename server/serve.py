@@ -27,7 +27,9 @@ from pathlib import Path
 
 from engine.config import ConfigError, SystemConfig, load_config
 
-__all__ = ["DEFAULT_CONFIG", "add_parser", "build_engine", "engine_cpu_arg", "engine_host_factory", "is_loopback", "main"]
+__all__ = [
+    "DEFAULT_CONFIG", "add_parser", "build_engine", "engine_cpu_arg", "engine_host_factory", "is_loopback", "main"
+]
 
 #: The config ``llrs serve`` uses without ``--config``: the paper's 1x64 chain (the fastest to compile and run).
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "examples" / "chain-1x64.yaml"
@@ -43,7 +45,7 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``serve`` on the ``llrs`` command line."""
     p = sub.add_parser(
         "serve",
@@ -52,8 +54,10 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # t
         "Shots run continuously from the start (--idle to wait for a command). Set LLRS_TOKEN to require a bearer "
         "token on every mutating route; it is required to bind to a non-loopback address.",
     )
-    p.add_argument("--config", default=None, help=f"YAML configuration (default: {DEFAULT_CONFIG.relative_to(DEFAULT_CONFIG.parent.parent)})")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind the API and the dashboard to (default 127.0.0.1)")
+    default_config = DEFAULT_CONFIG.relative_to(DEFAULT_CONFIG.parent.parent)
+    p.add_argument("--config", default=None, help=f"YAML configuration (default: {default_config})")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind the API and the dashboard to (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8000, help="API port (default 8000; 0 picks a free one)")
     p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080; 0 picks a free one)")
     p.add_argument("--dashboard-host", default=None,
@@ -63,7 +67,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:  # t
     p.add_argument("--pause", type=float, default=0.5, help="pause between continuous shots in seconds (default 0.5)")
     p.add_argument("--idle", action="store_true", help="do not start shots at once; wait for a command")
     p.add_argument("--no-dashboard", action="store_true", help="serve the API only")
-    p.add_argument("--cors-origin", action="append", default=[], help="allow browsers on this origin to call the API (repeatable)")
+    p.add_argument("--cors-origin", action="append", default=[],
+                   help="allow browsers on this origin to call the API (repeatable)")
     p.add_argument("--trusted-host", action="append", default=[],
                    help="a Host name the server answers to (repeatable); without a token only loopback names are "
                    "answered, with a token any unless these are given")
@@ -101,7 +106,7 @@ def engine_host_factory(*, in_process: bool, cpu: int | None):  # noqa: ANN201 -
     from engine.engine import EngineThread
     from engine.process import EngineProcess
 
-    def host(config: SystemConfig):  # noqa: ANN202
+    def host(config: SystemConfig):  # noqa: ANN202 - an EngineProcess or EngineThread, imported lazily above
         build = partial(build_engine, config)
         return EngineProcess(build, cpu=cpu) if in_process else EngineThread(build)
 
@@ -152,7 +157,8 @@ def main(args: argparse.Namespace) -> int:
     if not is_loopback(args.host) and token is None:
         print(
             f"llrs serve: refusing to bind to {args.host}, which other machines can reach, without a token.\n"
-            "  Set LLRS_TOKEN (e.g. `export LLRS_TOKEN=$(python3 -c 'import secrets; print(secrets.token_urlsafe())')`)\n"
+            "  Set LLRS_TOKEN (e.g. "
+            "`export LLRS_TOKEN=$(python3 -c 'import secrets; print(secrets.token_urlsafe())')`)\n"
             "  so that every mutating request needs 'Authorization: Bearer $LLRS_TOKEN', or bind to 127.0.0.1.",
             file=sys.stderr,
         )
@@ -243,10 +249,16 @@ def main(args: argparse.Namespace) -> int:
             f", pinned to core {args.engine_cpu} (the server keeps the others)" if args.engine_cpu is not None else "")
         _say(f"  engine      {where}")
         _say(f"  run files   {Path(args.runs_dir).resolve()}/")
-        _say(f"  tone files  {f'{args.tone_dir.resolve()}/ (--tone-dir)' if args.tone_dir else 'none accepted over the API (--tone-dir)'}")
-        _say(f"  shot files  {f'{args.shot_dir.resolve()}/ (--shot-dir)' if args.shot_dir else 'none accepted (--shot-dir)'}")
-        _say(f"  token       {'required on mutating routes and the dashboard controls (LLRS_TOKEN)' if token else 'none (loopback only)'}")
-        _say(f"  shots       {'idle: POST /api/run or the dashboard starts them' if args.idle else 'running continuously'}")
+        tone_files = f"{args.tone_dir.resolve()}/" if args.tone_dir else "none accepted over the API"
+        shot_files = f"{args.shot_dir.resolve()}/" if args.shot_dir else "none accepted"
+        _say(f"  tone files  {tone_files} (--tone-dir)")
+        _say(f"  shot files  {shot_files} (--shot-dir)")
+        if token:
+            _say("  token       required on mutating routes and the dashboard controls (LLRS_TOKEN)")
+        else:
+            _say("  token       none (loopback only)")
+        shots = "idle: POST /api/run or the dashboard starts them" if args.idle else "running continuously"
+        _say(f"  shots       {shots}")
         _say("Ctrl-C stops the server.")
         # uvicorn handles Ctrl-C/SIGTERM while it serves, then re-raises the signal it caught once it has
         # stopped; our handlers take that re-raised signal as noted, so the cleanup below always runs.

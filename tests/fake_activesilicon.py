@@ -119,13 +119,14 @@ class FakePhxLibrary:
         def call(*args: Any) -> int:
             try:
                 return impl(*args)
-            except Exception as err:  # noqa: BLE001
+            except Exception as err:  # noqa: BLE001 - every failure becomes a recorded violation
                 self.violations.append(f"{name}: {type(err).__name__}: {err}")
                 return H.PHX_ERROR_INVALID_POINTER
 
         return call
 
     # --- the C functions (arguments as ctypes hands them over: ints and pointer objects) ------------------
+    # (noqa N802: named as in the vendor's C library)
 
     def _PHX_Create(self, handle_ptr: Any, handler: int | None) -> int:  # noqa: N802
         self.log.append(("PHX_Create",))

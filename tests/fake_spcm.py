@@ -205,7 +205,7 @@ def load_spcm() -> types.ModuleType:
     def load_library(name: str) -> Any:
         return LIBRARY if name in DRIVER_NAMES else real_load(name)
 
-    loader.LoadLibrary = load_library  # type: ignore[method-assign]
+    loader.LoadLibrary = load_library  # type: ignore[method-assign]  # the fake replaces ctypes' loader on purpose
     try:
         _LOADED = importlib.import_module("spcm")
     finally:
@@ -544,7 +544,7 @@ def make_fake_spcm(*, with_card: bool = True, **card_kwargs: Any) -> types.Modul
     LIBRARY.lab = fake
     view = types.ModuleType("spcm")
     view.__dict__.update({k: v for k, v in vars(spcm).items() if not k.startswith("__")})
-    view.fake = fake  # type: ignore[attr-defined]
+    view.fake = fake  # type: ignore[attr-defined]  # the test reaches the fake through the view
     return view
 
 

@@ -92,7 +92,7 @@ def synth_axis(
     u = np.arange(n) / n
     phases = np.random.default_rng(seed).uniform(0, 2 * np.pi, len(tones))
     out = np.zeros(n)
-    for tone, phi in zip(tones, phases):
+    for tone, phi in zip(tones, phases, strict=True):
         pos = tone.site0 + (tone.site1 - tone.site0) * shape(u)
         f = np.interp(pos, sites, freqs)
         alpha = np.interp(pos, sites, alphas)
@@ -122,7 +122,12 @@ def synth_slots(
 
 def chain_config(nx: int = 16, **over) -> SystemConfig:
     data = {
-        "array": {"nx": nx, "ny": 1, "trap_source": "aod", "x_tones": {"start_hz": 70e6, "spacing_hz": 1e6, "amplitude": 0.015}},
+        "array": {
+            "nx": nx,
+            "ny": 1,
+            "trap_source": "aod",
+            "x_tones": {"start_hz": 70e6, "spacing_hz": 1e6, "amplitude": 0.015},
+        },
         "target": {"kind": "centre", "count": max(1, nx // 2)},
         "camera": {"roi_width_px": 16 * nx, "roi_height_px": 16},
         "awg": {"n_segments": 16, "n_steps": 64, "waveforms_per_segment": 4},

@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-from sim_signals import chain_config, grid_config, static, synth_slots
 
 from drivers.sim.awg import SimAWG
 from drivers.sim.clock import SimClock
@@ -31,6 +30,7 @@ from engine.errors import ConfigError
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations
 from engine.streaming import Streamer
 from engine.waveforms import WaveformBank
+from sim_signals import chain_config, grid_config, static, synth_slots
 from tests.fake_spcm import C, make_fake_spcm
 
 BAND = {"aod_centre_hz": 100e6, "aod_bandwidth_hz": 70e6}  # 65..135 MHz

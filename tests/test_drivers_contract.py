@@ -188,7 +188,7 @@ def camera_case(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Came
         devices, _ = open_devices(hw)
         if "spectrum" in HARDWARE:
             devices.awg.configure(hw.awg, n_channels=1, sample_rate_hz=hw.waveforms.sample_rate_hz)
-            fire = lambda: devices.awg.pulse("camera")  # noqa: E731
+            fire = lambda: devices.awg.pulse("camera")  # noqa: E731 - one line per branch reads best
         else:
             fire = lambda: None  # noqa: E731 - run with devices.andor.trigger: software
         case = CameraCase(devices.camera, hw, fire, True)

@@ -98,7 +98,8 @@ def test_a_labscript_shot_file_drives_a_shot_and_receives_its_results(tmp_path: 
     assert res["latency_s"][0] == 1.5e-4 and res["n_slots"].tolist() == [12, 0]
     # everything labscript put there is untouched, and nothing was written beside the file
     with h5py.File(path, "r") as f:
-        assert f.attrs["run number"] == 7 and "devices/pulseblaster_0" in f and f["globals"].attrs["MOT_load_time"] == 0.25
+        assert f.attrs["run number"] == 7 and "devices/pulseblaster_0" in f
+        assert f["globals"].attrs["MOT_load_time"] == 0.25
         assert list(f["results"]) == ["llrs"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["0007.h5"]
 
@@ -108,7 +109,9 @@ def test_a_second_write_is_refused_and_changes_nothing(tmp_path: Path) -> None:
     engine = StandInEngine(SystemConfig())
     run_shot_file(path, engine, base_config=SystemConfig())
     before = read_shot_results(path)
-    with pytest.raises(ShotFileError, match=r"already holds LLRS results \(shot 41, outcome success.*never overwritten"):
+    with pytest.raises(
+        ShotFileError, match=r"already holds LLRS results \(shot 41, outcome success.*never overwritten"
+    ):
         run_shot_file(path, engine, base_config=SystemConfig())
     assert len(engine.received) == 1  # refused before running a shot
     with pytest.raises(ShotFileError, match="already holds LLRS results"):

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from sim_signals import grid_config
 
 from drivers.sim.awg import SimAWG
 from drivers.sim.clock import SimClock
@@ -22,6 +21,7 @@ from engine.solvers import Solver
 from engine.solvers.validate import InvalidPlan, replay, validate
 from engine.targets import centre_target, rectangle_target
 from engine.waveforms import WaveformBank
+from sim_signals import grid_config
 
 NX = NY = 8
 CFG = grid_config(NX, NY, awg={"upload_jitter_s": 0.0})

@@ -22,7 +22,7 @@ def factory(config: SystemConfig) -> EngineThread:
             raise DeviceError("Spectrum AWG: the spcm package is installed but the Spectrum driver library is not")
         return FakeEngine(config)
 
-    return EngineThread(build)  # type: ignore[arg-type, return-value]
+    return EngineThread(build)  # type: ignore[arg-type, return-value]  # a FakeEngine stands in for Engine
 
 
 @pytest.fixture()

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-schemathesis = pytest.importorskip("schemathesis")
+schemathesis = pytest.importorskip("schemathesis")  # the imports below (E402) need it, or the module is skipped
 from hypothesis import HealthCheck, settings  # noqa: E402
 from schemathesis.checks import positive_data_acceptance  # noqa: E402
 
@@ -26,7 +26,7 @@ from server_fakes import FakeEngine, example_config  # noqa: E402
 
 _runs = Path(__import__("tempfile").mkdtemp(prefix="llrs-schema-"))
 _service = LabService(
-    engine_thread=EngineThread(lambda: FakeEngine(example_config(), keep_images=True)),  # type: ignore[arg-type, return-value]
+    engine_thread=EngineThread(lambda: FakeEngine(example_config(), keep_images=True)),  # type: ignore[arg-type, return-value]  # a fake engine
     store=RunStore(_runs),
     pause_s=0.01,
 )

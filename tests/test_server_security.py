@@ -25,7 +25,7 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
 def fake_factory(config: SystemConfig) -> EngineThread:
-    return EngineThread(lambda: FakeEngine(config, keep_images=True))  # type: ignore[arg-type, return-value]
+    return EngineThread(lambda: FakeEngine(config, keep_images=True))  # type: ignore[arg-type, return-value]  # a FakeEngine stands in for Engine
 
 
 @pytest.fixture
@@ -147,7 +147,7 @@ def test_any_engine_error_while_applying_is_a_422(secured: TestClient, lab: LabS
     def overflow(config: SystemConfig) -> None:
         raise OverflowError("int too large to convert to float")
 
-    engine = lab._et.engine  # type: ignore[union-attr]
+    engine = lab._et.engine  # type: ignore[union-attr]  # started above
     engine.apply = overflow
     before = secured.get("/api/config").json()
     r = secured.patch("/api/config", json={"loop": {"max_cycles": 4}})
@@ -291,7 +291,7 @@ def test_a_command_waits_for_a_busy_engine_only_so_long(tmp_path: Path, monkeypa
 
     monkeypatch.setattr(server.service, "COMMAND_WAIT_S", 0.2)
     service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(example_config(), shot_s=1.0)),  # type: ignore[arg-type, return-value]
+        engine_thread=EngineThread(lambda: FakeEngine(example_config(), shot_s=1.0)),  # type: ignore[arg-type, return-value]  # a fake engine
         pause_s=0.0,
     ).start()
     try:

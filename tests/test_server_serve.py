@@ -53,7 +53,9 @@ def test_bad_config_is_a_clear_error(tmp_path: Path) -> None:
     assert r.returncode == 2 and "sim.loading_probability" in r.stderr
 
 
-@pytest.mark.parametrize(("value", "message"), [("4096", "this process may use cores"), ("fast", "core number, 'auto' or 'none'")])
+@pytest.mark.parametrize(
+    ("value", "message"), [("4096", "this process may use cores"), ("fast", "core number, 'auto' or 'none'")]
+)
 def test_bad_engine_core_is_a_clear_error(value: str, message: str) -> None:
     r = _serve("--engine-cpu", value, "--port", "0")
     assert r.returncode == 2 and message in r.stderr, r.stderr

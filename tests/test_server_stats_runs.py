@@ -11,13 +11,13 @@ import h5py
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from server_fakes import FakeEngine, example_config
 
 from engine.engine import EngineThread
 from engine.records import CycleRecord, Outcome, ShotRecord
 from server.app import create_app
 from server.runstore import RunStore
 from server.service import LabService
+from server_fakes import FakeEngine, example_config
 
 TOKEN = "stats-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -27,7 +27,7 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 def lab(tmp_path: Path) -> Iterator[LabService]:
     config = example_config()
     service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(config)),  # type: ignore[arg-type, return-value]
+        engine_thread=EngineThread(lambda: FakeEngine(config)),  # type: ignore[arg-type, return-value]  # a FakeEngine stands in for Engine
         store=RunStore(tmp_path / "runs"),
         pause_s=0.01,
     ).start()
@@ -60,7 +60,7 @@ def test_stats_follow_the_shots_and_reset_needs_the_token(lab: LabService, clien
 
 def test_run_files_are_listed_downloaded_and_read_back(lab: LabService, client: TestClient) -> None:
     records = [lab.shot() for _ in range(3)]
-    lab.run_store.flush()  # type: ignore[union-attr]
+    lab.run_store.flush()  # type: ignore[union-attr]  # the run store exists: the service was built with one
     runs = client.get("/api/runs").json()
     assert len(runs) == 1 and runs[0]["shots"] == 3 and runs[0]["config_digest"] == lab.config.digest()
     name = runs[0]["name"]

@@ -24,7 +24,7 @@ def chain(**over: object) -> SystemConfig:
     data["sim"].update(lossless=True, seed=5)
     data["awg"].update(waveforms_per_segment=2)
     for section, values in over.items():
-        data[section].update(values)  # type: ignore[arg-type]
+        data[section].update(values)  # type: ignore[arg-type]  # every section is a dict
     return SystemConfig.model_validate(data)
 
 

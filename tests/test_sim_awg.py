@@ -6,12 +6,12 @@ import time
 
 import numpy as np
 import pytest
-from sim_signals import chain_config, chain_shift, static, synth_slots
 
 from drivers.sim.awg import SimAWG
 from drivers.sim.clock import SimClock
 from drivers.sim.world import World
 from engine.devices import DeviceError, SequenceAWG, StepInfo
+from sim_signals import chain_config, chain_shift, static, synth_slots
 
 N = 16
 CFG = chain_config(N, awg={"upload_jitter_s": 0.0})

@@ -233,7 +233,7 @@ def test_timeout_raises_and_costs_the_timeout() -> None:
 def test_fault_knob_fails_next_read_once(kind: str, message: str) -> None:
     camera, _ = make_camera(chain_config(), np.zeros((1, 64), dtype=bool))
     out = np.empty(camera.frame_shape, dtype=np.uint16)
-    camera.fail_next_read = kind  # type: ignore[assignment]
+    camera.fail_next_read = kind  # type: ignore[assignment]  # each failure kind, as the test parametrizes
     camera.trigger()
     with pytest.raises(DeviceError, match=message):
         camera.read(out, timeout_s=1.0)
@@ -244,7 +244,7 @@ def test_fault_knob_fails_next_read_once(kind: str, message: str) -> None:
 def test_bad_arguments() -> None:
     camera, _ = make_camera(chain_config(), np.zeros((1, 64), dtype=bool))
     with pytest.raises(ValueError, match="fail_next_read"):
-        camera.fail_next_read = "explode"  # type: ignore[assignment]
+        camera.fail_next_read = "explode"  # type: ignore[assignment]  # a bad value on purpose
     camera.trigger()
     with pytest.raises(ValueError, match="uint16"):
         camera.read(np.empty((16, 1024), dtype=np.int32), timeout_s=1.0)

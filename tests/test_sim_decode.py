@@ -6,6 +6,9 @@ import time
 
 import numpy as np
 import pytest
+
+from drivers.sim.decode import DecodeConfigError, SampleDecoder
+from drivers.sim.world import World
 from sim_signals import (
     chain_config,
     chain_moves,
@@ -18,9 +21,6 @@ from sim_signals import (
     synth_slots,
     tanh_shape,
 )
-
-from drivers.sim.decode import DecodeConfigError, SampleDecoder
-from drivers.sim.world import World
 
 
 def moves_of(t: np.ndarray) -> list[tuple[int, int]]:

@@ -17,7 +17,6 @@ from drivers.sim.world import World
 from engine.config import SystemConfig
 from engine.engine import Engine
 from engine.imaging import Detector
-
 from sim_signals import chain_config
 
 
@@ -186,7 +185,7 @@ def test_the_engine_threshold_is_its_own_not_the_simulated_cameras() -> None:
         update={"sim": config.sim.model_copy(update={"imaging": config.sim.imaging.model_copy(update=hidden)})}
     )
     engine.apply(changed)
-    np.testing.assert_array_equal(engine._p.detector.thresholds, before)  # noqa: SLF001
+    np.testing.assert_array_equal(engine._p.detector.thresholds, before)  # noqa: SLF001 - as above
     refit = Detector(changed)
     refit.calibrate(engine.acquire_images(20))
     assert abs(float(refit.thresholds[0]) - float(before[0])) > 5.0  # the dimmer, noisier camera needs another

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 from scipy.special import gammainc
-from sim_signals import chain_config, grid_config
 
 from drivers.sim.move_loss import (
     ALPHA_HOLD,
@@ -19,7 +18,7 @@ from drivers.sim.move_loss import (
     transfer_survival,
 )
 from drivers.sim.world import World
-
+from sim_signals import chain_config, grid_config
 
 
 def rb87(**over: float) -> TrapParameters:
@@ -54,7 +53,7 @@ def test_barrier_of_the_tilted_trap() -> None:
     assert 0.0 < barrier_fraction(0.99 * ALPHA_HOLD) < 0.01
     assert barrier_fraction(ALPHA_HOLD) == 0.0
     values = [barrier_fraction(a) for a in np.linspace(0, ALPHA_HOLD, 30)]
-    assert all(b >= a for a, b in zip(values[1:], values[:-1]))  # monotonic
+    assert all(b >= a for a, b in zip(values[1:], values[:-1], strict=True))  # monotonic
 
 
 def test_depth_ramps_are_sudden_when_short_and_adiabatic_when_long() -> None:

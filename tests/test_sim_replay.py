@@ -8,11 +8,11 @@ import sys
 
 import numpy as np
 import pytest
-from sim_signals import grid_config
 
 from drivers.sim.world import World
 from engine.config import ConfigError, config_from_dict
 from server.cli import main as cli_main
+from sim_signals import grid_config
 
 
 def _tracks(*rows: tuple[float, float, float, float]) -> np.ndarray:

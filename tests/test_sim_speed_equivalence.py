@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 from scipy.special import ndtr
-from sim_signals import Tone, chain_config, grid_config, synth_slots
 
 from drivers.sim.camera import (
     TABLE_ELECTRONS,
@@ -22,6 +21,7 @@ from drivers.sim.camera import (
 from drivers.sim.clock import SimClock
 from drivers.sim.decode import SampleDecoder
 from drivers.sim.world import World, _Uniforms
+from sim_signals import Tone, chain_config, grid_config, synth_slots
 
 # --- world ------------------------------------------------------------------------------------------------
 
@@ -66,7 +66,8 @@ def test_world_kernels_equal_numpy_reference_on_random_slots(cfg, lossless: bool
             assert np.array_equal(fast.occupancy(), ref.occupancy()), (seed, k)
             assert np.array_equal(fast.held(), ref.held()), (seed, k)
             assert fast.counters == ref.counters, (seed, k)
-        assert (fast._move_draws.pos, fast._vacuum_draws.pos) == (ref._move_draws.pos, ref._vacuum_draws.pos)  # same draws
+        # the same draws
+        assert (fast._move_draws.pos, fast._vacuum_draws.pos) == (ref._move_draws.pos, ref._vacuum_draws.pos)
 
 
 def test_world_kernels_equal_reference_on_decoded_segments() -> None:
@@ -169,7 +170,9 @@ def test_fast_decoder_equals_reference_on_random_samples(cfg) -> None:
 
 
 @pytest.mark.parametrize(
-    ("g", "sigma", "epc"), [(300.0, 60.0, 20.0), (50.0, 10.0, 5.0), (300.0, 0.0, 20.0)], ids=["paper", "low", "no-read-noise"]
+    ("g", "sigma", "epc"),
+    [(300.0, 60.0, 20.0), (50.0, 10.0, 5.0), (300.0, 0.0, 20.0)],
+    ids=["paper", "low", "no-read-noise"],
 )
 def test_background_table_matches_quadrature(g: float, sigma: float, epc: float) -> None:
     """The tabulated count probabilities against direct numerical integration of the model."""
@@ -194,7 +197,12 @@ def test_background_table_matches_quadrature(g: float, sigma: float, epc: float)
 
 @pytest.mark.parametrize(
     ("bg", "g", "sigma", "epc", "bias"),
-    [(0.45, 300.0, 60.0, 20.0, 500.0), (1.8, 300.0, 60.0, 20.0, 500.0), (0.45, 300.0, 60.0, 20.0, 0.0), (12.0, 50.0, 10.0, 5.0, 100.0)],
+    [
+        (0.45, 300.0, 60.0, 20.0, 500.0),
+        (1.8, 300.0, 60.0, 20.0, 500.0),
+        (0.45, 300.0, 60.0, 20.0, 0.0),
+        (12.0, 50.0, 10.0, 5.0, 100.0),
+    ],
     ids=["paper", "bright-background", "clipped-at-zero", "background-above-10"],
 )
 def test_split_sampler_matches_literal_sampler(bg: float, g: float, sigma: float, epc: float, bias: float) -> None:
@@ -205,7 +213,9 @@ def test_split_sampler_matches_literal_sampler(bg: float, g: float, sigma: float
     a = np.empty(shape, np.uint16)
     b = np.empty(shape, np.uint16)
     _emccd_counts(np.random.default_rng(1), mean, g, sigma, epc, bias, a)
-    _emccd_counts_split(np.random.default_rng(2), mean, bg, g, sigma, epc, bias, t.prob, t.alias, t.value, t.bg_cdf, t.slow_cdf, b)
+    _emccd_counts_split(
+        np.random.default_rng(2), mean, bg, g, sigma, epc, bias, t.prob, t.alias, t.value, t.bg_cdf, t.slow_cdf, b
+    )
     for cols in (slice(1, None, 4), slice(0, None, 4)):  # background-only columns, then columns with atom light
         ha = np.bincount(a[:, cols].ravel(), minlength=65536).astype(float)
         hb = np.bincount(b[:, cols].ravel(), minlength=65536).astype(float)

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from sim_signals import chain_config, grid_config
 
 from drivers.sim.clock import SimClock
 from drivers.sim.world import World
+from sim_signals import chain_config, grid_config
 
 
 def tracks(*rows: tuple[float, float, float, float]) -> np.ndarray:

@@ -10,11 +10,11 @@ the larger sweep (the examples' 32x64 grid) is marked slow.
 from __future__ import annotations
 
 import pytest
-from sim_signals import chain_config, grid_config
 
 from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine
+from sim_signals import chain_config, grid_config
 
 SPACINGS_HZ = (0.5e6, 0.6e6, 1.0e6)
 

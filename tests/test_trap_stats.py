@@ -70,7 +70,7 @@ def test_book_keeps_statistics_per_configuration_and_resets() -> None:
     other = shot(1, [cycle(0, "1111", None, [1, 2, 3, 4])], "1111")
     other.config_digest = "e"
     book.add(other)
-    assert book.get("d").shots == 1 and book.get("e").shots == 1  # type: ignore[union-attr]
+    assert book.get("d").shots == 1 and book.get("e").shots == 1  # type: ignore[union-attr]  # both traps were recorded just above
     book.reset("d")
     assert book.get("d") is None and book.get("e") is not None
     book.reset()

@@ -33,12 +33,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.sim.clock import SimClock
 from drivers.sim.decode import DecodedSegment, SampleDecoder
 from drivers.sim.world import World
 from engine import card_rules
 from engine.aod_limits import SegmentGuard
 from engine.config import AWGConfig, SystemConfig
-from engine.devices import Clock, DeviceError, StepInfo
+from engine.devices import DeviceError, StepInfo
 
 __all__ = ["LOG_LENGTH", "PlayRecord", "SimAWG"]
 
@@ -69,7 +70,7 @@ class _Segment:
 
 
 class SimAWG:
-    """Implements ``engine.devices.SequenceAWG`` against a simulated ``World`` and ``Clock``.
+    """Implements ``engine.devices.SequenceAWG`` against a simulated ``World`` and ``SimClock``.
 
     Fault knobs (python-microscope style; set them as attributes): ``fail_next_upload`` (the next
     ``write_segment`` raises ``DeviceError`` without writing), ``fail_uploads`` (every one does, until
@@ -80,7 +81,7 @@ class SimAWG:
     def __init__(
         self,
         world: World,
-        clock: Clock,
+        clock: SimClock,  # advanced by the card's modelled times and paused while the simulator computes
         config: SystemConfig,
         *,
         rng: np.random.Generator | None = None,
@@ -136,10 +137,11 @@ class SimAWG:
             self.decoder = decoder
             self._segments: list[_Segment | None] = [None] * config.n_segments
             self._steps: list[StepInfo | None] = [None] * config.n_steps
-            self._pending: list[tuple[float, int, int, object]] = []  # (t_effective, kind 0=seg 1=step, index, value)
+            self._pending: list[tuple[float, int, _Segment | StepInfo]] = []  # (t_effective, index, segment or step)
             self._log: deque[PlayRecord] = deque(maxlen=LOG_LENGTH)
             self._running = False
             self._pass_segment = -1
+            self._pass_index = 0  # passes of the current step's segment (1 on entering a step)
             self._fault: str | None = None
             self._last_trigger_s: float | None = None
             self._dma_free_s = -math.inf  # when the DMA engine finishes the uploads queued so far
@@ -181,7 +183,7 @@ class SimAWG:
             )
             seg.t_ready_s = t_begin + cost
             self._dma_free_s = seg.t_ready_s
-            self._queue(seg.t_ready_s, 0, index, seg)
+            self._queue(seg.t_ready_s, index, seg)
             self.uploads += 1
             self.bytes_uploaded += samples.nbytes
 
@@ -194,17 +196,18 @@ class SimAWG:
             if self._dma_free_s - now > timeout_s:
                 self.clock.advance(timeout_s)
                 raise DeviceError(
-                    f"sim AWG: upload still running after {timeout_s:g} s; check upload_bytes_per_s and the segment size"
+                    f"sim AWG: upload still running after {timeout_s:g} s; "
+                    "check upload_bytes_per_s and the segment size"
                 )
             self.clock.advance_to(self._dma_free_s)
             self._sync()
 
-    def _queue(self, t_effective_s: float, kind: int, index: int, value: object) -> None:
+    def _queue(self, t_effective_s: float, index: int, value: _Segment | StepInfo) -> None:
         """Add a memory write that takes effect at ``t_effective_s``, keeping ``_pending`` in time order."""
         pos = len(self._pending)
         while pos and self._pending[pos - 1][0] > t_effective_s:
             pos -= 1
-        self._pending.insert(pos, (t_effective_s, kind, index, value))
+        self._pending.insert(pos, (t_effective_s, index, value))
 
     def _check_segment(self, index: int, samples: np.ndarray) -> None:
         if not 0 <= index < len(self._segments):
@@ -223,7 +226,9 @@ class SimAWG:
         if problem is not None:
             raise DeviceError(f"sim AWG: segment {index} refused by the RF limits: {problem}")
         if self._running and self._pass_segment == index:
-            raise DeviceError(f"sim AWG: segment {index} is playing right now (step {self._step}); it cannot be written")
+            raise DeviceError(
+                f"sim AWG: segment {index} is playing right now (step {self._step}); it cannot be written"
+            )
         used = sum(s.data.nbytes for i, s in enumerate(self._latest_segments()) if s is not None and i != index)
         if used + samples.nbytes > self.awg_config.max_memory_bytes:
             raise DeviceError(
@@ -249,7 +254,7 @@ class SimAWG:
             cost = self.awg_config.step_write_s + self.step_write_delay_s
             t_eff = self.clock.now_s() + cost
             self.clock.advance(cost)
-            self._queue(t_eff, 1, index, step)
+            self._queue(t_eff, index, step)
 
     # --- protocol: playback ----------------------------------------------------------------------------
 
@@ -366,9 +371,9 @@ class SimAWG:
 
     def _latest_segments(self) -> list[_Segment | None]:
         latest = list(self._segments)
-        for _, kind, index, value in self._pending:
-            if kind == 0:
-                latest[index] = value  # type: ignore[assignment]
+        for _, index, value in self._pending:
+            if isinstance(value, _Segment):
+                latest[index] = value
         return latest
 
     def _raise_fault(self) -> None:
@@ -391,13 +396,13 @@ class SimAWG:
     def _commit_pending(self, t_s: float) -> None:
         """Apply memory writes that have taken effect by ``t_s`` (they are in time order)."""
         n = 0
-        for t_eff, kind, index, value in self._pending:
+        for t_eff, index, value in self._pending:
             if t_eff > t_s:
                 break
-            if kind == 0:
-                self._segments[index] = value  # type: ignore[assignment]
+            if isinstance(value, _Segment):
+                self._segments[index] = value
             else:
-                self._steps[index] = value  # type: ignore[assignment]
+                self._steps[index] = value
             n += 1
         if n:
             del self._pending[:n]
@@ -425,8 +430,8 @@ class SimAWG:
             self._fault = f"sim AWG: step {self._step} plays segment {info.segment}, which holds no data; stopped"
             self._running = False
             return
-        for t_eff, kind, index, value in self._pending:
-            if kind == 0 and index == info.segment and value.t_begin_s <= t_s < t_eff:  # type: ignore[attr-defined]
+        for t_eff, index, value in self._pending:
+            if isinstance(value, _Segment) and index == info.segment and value.t_begin_s <= t_s < t_eff:
                 self.torn_plays += 1
         rec = self._log[-1]
         rec.segment = info.segment

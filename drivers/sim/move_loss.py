@@ -110,10 +110,16 @@ def barrier_fraction(alpha: float) -> float:
         return 1.0
     if alpha >= ALPHA_HOLD:
         return 0.0
-    force = lambda x: -4.0 * x * math.exp(-2.0 * x * x) - alpha  # noqa: E731 - zero at the well and the barrier
+
+    def force(x: float) -> float:
+        """Zero at the well and at the barrier."""
+        return -4.0 * x * math.exp(-2.0 * x * x) - alpha
+
+    def potential(x: float) -> float:
+        return -math.exp(-2.0 * x * x) + alpha * x
+
     well = brentq(force, -0.5, 0.0)
     top = brentq(force, -0.5 - 20.0, -0.5)
-    potential = lambda x: -math.exp(-2.0 * x * x) + alpha * x  # noqa: E731
     return max(0.0, potential(top) - potential(well))
 
 

@@ -474,9 +474,13 @@ def _vacuum(
     return pos, lost, False
 
 
+_kernels_warm = False  # set once _warm_up has run in this process
+
+
 def _warm_up() -> None:
     """Compile (or load from the cache) every kernel now, not during the first shot; no state is touched."""
-    if _warm_up.done:  # type: ignore[attr-defined]
+    global _kernels_warm
+    if _kernels_warm:
         return
     grid = np.zeros((1, 1), dtype=bool)
     u = np.zeros(4)
@@ -489,7 +493,4 @@ def _warm_up() -> None:
         False, 1.0, False, 1.0, ev,
     )  # fmt: skip
     mm.chain_slot(one, 0.5, st.static[0], st.ids[0, 0], st.atom_stats, False, st.chain_scratch, u, 0, False, 1.0, ev)
-    _warm_up.done = True  # type: ignore[attr-defined]
-
-
-_warm_up.done = False  # type: ignore[attr-defined]
+    _kernels_warm = True

@@ -180,10 +180,10 @@ class AODParallelPlanner:
         while True:
             status, nb, n_steps, n_slots = plan_rect(
                 occ, transposed, a0, a1, b0, b1, self.dynamic_windows, dedicated, self.k_best,
-                self._g, self._cnt, self._cand, self._key, self._carried, self._ob, self._prow, self._st, self._pos, self._cm,
-                self._vt, self._ut, self._vb, self._ub, self._sct, self._scb, self._it, self._ib, self._tv, self._bv,
-                self._ptop, self._pbot, self._cols, self._bmeta, self._brow, self._brs, self._brm, self._bcol, self._bcs,
-                self._bcm, self._steps,
+                self._g, self._cnt, self._cand, self._key, self._carried, self._ob, self._prow, self._st, self._pos,
+                self._cm, self._vt, self._ut, self._vb, self._ub, self._sct, self._scb, self._it, self._ib, self._tv,
+                self._bv, self._ptop, self._pbot, self._cols, self._bmeta, self._brow, self._brs, self._brm,
+                self._bcol, self._bcs, self._bcm, self._steps,
             )  # fmt: skip
             if status != OVERFLOW:
                 break

@@ -99,7 +99,7 @@ class AssignmentPlanner:
         if len(holes):
             cost = self._pair_costs(occ, free, holes)
             rows, cols = linear_sum_assignment(cost.T)  # holes x free atoms: every hole gets an atom
-            pairs = [(tuple(free[c]), tuple(holes[r])) for r, c in zip(rows, cols)]
+            pairs = [(tuple(free[c]), tuple(holes[r])) for r, c in zip(rows, cols, strict=True)]
             pairs.sort(key=lambda st: abs(st[0][0] - st[1][0]) + abs(st[0][1] - st[1][1]))
             for source, dest in pairs:
                 path = self._route(occ, source, dest)

@@ -21,8 +21,8 @@ Grammar (``docs/ARCHITECTURE.md``; the crossed-AOD model is worked through in ``
 Physics (the move model): a loaded tweezer may not meet an atom (moving onto one, or implanting onto one);
 an ``IDLE`` slot while atoms are held drops them (the AWG plays silence). An atom that an empty tweezer
 captures on its way, or that an extract picks up, must be one the plan's steps move (it is **accounted**);
-otherwise the plan disturbs an atom it did not mean to move, and is rejected. Every atom's steps and final trap in the replay must match the
-plan's one-site steps.
+otherwise the plan disturbs an atom it did not mean to move, and is rejected. Every atom's steps and final trap
+in the replay must match the plan's one-site steps.
 
 ``trap_source = "aod"`` (a chain whose traps are the x tones; every slot is a conveyor ``SHIFT``):
 - the listed tones move by their deltas; an atom under a listed tone moves with it; a moving tone may only
@@ -114,7 +114,7 @@ def _check_chain_grammar(ops: Operations, nx: int) -> None:
         src, dst = xs[movers], ends[movers]
         if np.unique(dst).size != dst.size:
             raise _fail(ops, i, "two tones merge")
-        move_to = dict(zip(src.tolist(), dst.tolist()))
+        move_to = dict(zip(src.tolist(), dst.tolist(), strict=True))
         for s, d in move_to.items():
             if move_to.get(d) == s:
                 raise _fail(ops, i, f"tones at sites {s} and {d} cross")

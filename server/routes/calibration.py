@@ -31,7 +31,9 @@ _CALIBRATION = Annotated[ThresholdCalibrationOut | PsfCalibrationOut, Field(disc
     summary="Acquire fresh frames and fit the occupancy threshold; returns the fit and its fidelity, "
     "applies nothing (see POST /api/calibrate/apply)",
 )
-def calibrate_threshold(service: Service, request: Annotated[CalibrationRequest | None, Body()] = None) -> dict[str, Any]:
+def calibrate_threshold(
+    service: Service, request: Annotated[CalibrationRequest | None, Body()] = None
+) -> dict[str, Any]:
     return service.calibrate_threshold(images=(request or CalibrationRequest()).images)
 
 
@@ -68,4 +70,5 @@ def calibrations(service: Service) -> list[dict[str, Any]]:
 )
 def apply_calibration(service: Service, request: CalibrationApplyRequest) -> CalibrationApplyOut:
     applied = service.apply_calibration(request.id)
-    return CalibrationApplyOut(applied=applied, config_digest=service.config.digest())  # type: ignore[arg-type]
+    # validated from the service's plain dict: the discriminator ``kind`` picks the threshold or the PSF model
+    return CalibrationApplyOut.model_validate({"applied": applied, "config_digest": service.config.digest()})

@@ -39,8 +39,12 @@ BODY_ERRORS: dict[int | str, dict[str, Any]] = {
     400: {**ERR, "description": "malformed request body"},
     422: {**ERR, "description": "invalid input: `detail` names each field and why; nothing was changed"},
 }
-CONFLICT: dict[int | str, dict[str, Any]] = {409: {**ERR, "description": "not possible in the present state; `detail` says why"}}
-DEVICE: dict[int | str, dict[str, Any]] = {503: {**ERR, "description": "a device failed while acquiring frames; `detail` says which"}}
+CONFLICT: dict[int | str, dict[str, Any]] = {
+    409: {**ERR, "description": "not possible in the present state; `detail` says why"}
+}
+DEVICE: dict[int | str, dict[str, Any]] = {
+    503: {**ERR, "description": "a device failed while acquiring frames; `detail` says which"}
+}
 NO_DEVICES: dict[int | str, dict[str, Any]] = {
     503: {**ERR, "description": "the configured devices could not be opened; `detail` says why and how to fix it"}
 }

@@ -34,7 +34,8 @@ def get_config(service: Service) -> SystemConfig:
 def put_config(service: Service, config: JsonBody) -> SystemConfig:
     if not isinstance(config, dict):
         raise HTTPException(
-            422, detail=[{"loc": ["body"], "msg": "expected a JSON object (the whole configuration)", "type": "dict_type"}]
+            422,
+            detail=[{"loc": ["body"], "msg": "expected a JSON object (the whole configuration)", "type": "dict_type"}],
         )
     return service.replace_config(config)
 

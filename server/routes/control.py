@@ -41,7 +41,11 @@ def stop(service: Service) -> RunStateOut:
 )
 def arm(service: Service, request: Annotated[ArmRequest | None, Body()] = None) -> ArmOut:
     service.arm(shots=request.shots if request is not None else None)
-    return ArmOut(armed=service.armed, trigger=service.trigger_source, shots_left=service.armed_shots_left)  # type: ignore[arg-type]
+    return ArmOut(
+        armed=service.armed,
+        trigger=service.trigger_source,  # type: ignore[arg-type]  # a str typed by the service; "rest" or "hardware"
+        shots_left=service.armed_shots_left,
+    )
 
 
 @commands.post(

@@ -277,8 +277,8 @@ def _pct(x: float) -> str:
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     """The rows as a markdown table (what docs/benchmarks.md quotes)."""
     head = (
-        "| problem | planner | loss (transfer/step) | lifetime s | image survival | shots | success % [95 % CI] | engine believed % "
-        "| cycles mean / p90 | time to array ms median / p90 | vacuum bound % | lost per cycle: "
+        "| problem | planner | loss (transfer/step) | lifetime s | image survival | shots | success % [95 % CI] "
+        "| engine believed % | cycles mean / p90 | time to array ms median / p90 | vacuum bound % | lost per cycle: "
         + " / ".join(LOSS_CAUSES)
         + " |"
     )
@@ -295,7 +295,8 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
         times = f"{t_med:.1f} / {t_p90:.1f}" if t_med is not None else "-"
         lost = " / ".join(f"{r['lost_per_cycle'][c]:.2f}" for c in LOSS_CAUSES)
         lines.append(
-            label + f"| {r['shots']} | {_pct(r['success'])} [{_pct(r['success_ci95'][0])}, {_pct(r['success_ci95'][1])}] "
+            label + f"| {r['shots']} | {_pct(r['success'])} "
+            f"[{_pct(r['success_ci95'][0])}, {_pct(r['success_ci95'][1])}] "
             f"| {_pct(r['engine_believed'])} | {r['cycles_mean']:.2f} / {r['cycles_p90']:.0f} | {times} "
             f"| {_pct(r['vacuum_bound'])} | {lost} |"
         )
@@ -328,7 +329,7 @@ def _cmd(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg] - argparse's private class
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("assembly", help="closed-loop success and time to a defect-free array, on a dask cluster")
     p.add_argument("--problems", default="32x64", help=f"comma-separated, from {', '.join(PROBLEMS)} (default 32x64)")
     p.add_argument(

@@ -60,7 +60,10 @@ def _cmd(args: argparse.Namespace) -> int:
         bank.render(0, n, out)
         render_s.append((time.perf_counter() - t0) / n)
     us = lambda v, q: float(np.percentile(v, q)) * 1e6  # noqa: E731
-    print(f"exact-1d solve + batch: median {us(plan_s, 50):.2f} us, p99 {us(plan_s, 99):.2f} us ({len(plan_s)} instances)")
+    print(
+        f"exact-1d solve + batch: median {us(plan_s, 50):.2f} us, p99 {us(plan_s, 99):.2f} us "
+        f"({len(plan_s)} instances)"
+    )
     print(f"lookup per slot: median {us(lookup_s, 50):.3f} us after a render, {us(warm_s, 50):.3f} us warm; "
           f"per table waveform (key): median {us(per_waveform_s, 50):.3f} us; "
           f"render per slot: median {us(render_s, 50):.2f} us")

@@ -146,7 +146,8 @@ def import_andor() -> ModuleType:
         raise DeviceError(f"Andor camera: pyAndorSDK2 is installed but needs {err.name!r}; {INSTALL_SDK}") from None
     except Exception as err:  # noqa: BLE001 - the wrapper may load the library at import time
         raise DeviceError(
-            f"Andor camera: pyAndorSDK2 is installed but the Andor SDK library could not be loaded ({err}); {INSTALL_SDK}"
+            f"Andor camera: pyAndorSDK2 is installed but the Andor SDK library could not be loaded ({err}); "
+            f"{INSTALL_SDK}"
         ) from None
 
 
@@ -206,7 +207,9 @@ class AndorCamera:
         try:
             sdk = mod.atmcd()
         except Exception as err:  # noqa: BLE001 - loading libandor fails with OSError and friends
-            raise DeviceError(f"Andor camera: the Andor SDK library could not be loaded ({err}); {INSTALL_SDK}") from None
+            raise DeviceError(
+                f"Andor camera: the Andor SDK library could not be loaded ({err}); {INSTALL_SDK}"
+            ) from None
         s = self.settings
         ret, n = sdk.GetAvailableCameras()
         self._ok(ret, "GetAvailableCameras")
@@ -414,7 +417,9 @@ class AndorCamera:
             )
         if out is not self._out:
             if out.shape != self._shape or out.dtype != np.uint16 or not out.flags.c_contiguous:
-                raise DeviceError(f"Andor camera: out must be a C-contiguous uint16{self._shape} array, got {out.dtype}{out.shape}")
+                raise DeviceError(
+                    f"Andor camera: out must be a C-contiguous uint16{self._shape} array, got {out.dtype}{out.shape}"
+                )
             self._out, self._out_flat = out, out.reshape(-1)
         self._t_trigger = None
         if self.frame_source is not None:
@@ -452,6 +457,8 @@ class AndorCamera:
         if ret != DRV_SUCCESS:
             self._ok(ret, "GetMostRecentImage16")
         # the wrapper returns int16 (it allocates c_short); the camera's counts are unsigned 16-bit: same bits
+        if self._out_flat is None:
+            raise DeviceError("Andor camera: read() before configure(): no frame buffer to fill")
         np.copyto(self._out_flat, image.view(np.uint16))
 
     def _vertical_shift_index(self, shift_s: float) -> int:

@@ -173,9 +173,15 @@ class CameraConfig(_Model):
     roi_width_px: Annotated[int, Field(ge=1, le=4096)] = 1024
     roi_height_px: Annotated[int, Field(ge=1, le=4096)] = 16
     binning: tuple[Annotated[int, Field(ge=1, le=16)], Annotated[int, Field(ge=1, le=16)]] = (1, 1)
-    origin_px: tuple[PixelCoordinate, PixelCoordinate] = Field(default=(8.0, 8.0), description="(x, y) pixel of trap (row 0, col 0)")
-    col_step_px: tuple[PixelCoordinate, PixelCoordinate] = Field(default=(16.0, 0.0), description="(x, y) pixel step from column c to c+1")
-    row_step_px: tuple[PixelCoordinate, PixelCoordinate] = Field(default=(0.0, 16.0), description="(x, y) pixel step from row r to r+1")
+    origin_px: tuple[PixelCoordinate, PixelCoordinate] = Field(
+        default=(8.0, 8.0), description="(x, y) pixel of trap (row 0, col 0)"
+    )
+    col_step_px: tuple[PixelCoordinate, PixelCoordinate] = Field(
+        default=(16.0, 0.0), description="(x, y) pixel step from column c to c+1"
+    )
+    row_step_px: tuple[PixelCoordinate, PixelCoordinate] = Field(
+        default=(0.0, 16.0), description="(x, y) pixel step from row r to r+1"
+    )
     psf_sigma_px: Annotated[float, Field(gt=0, le=100)] = 1.2
     exposure_s: Annotated[float, Field(gt=0, le=60)] = 0.020
     em_gain: Annotated[float, Field(ge=1, le=1000)] = 300.0
@@ -440,22 +446,27 @@ class DevicesConfig(_Model):
         """The Spectrum M4i.66xx AWG in sequence mode (``drivers/spectrum.py``)."""
 
         device: str = Field(
-            default="/dev/spcm0", min_length=1, max_length=256, description="card to open: '/dev/spcmN' or 'TCPIP::<ip>::inst0::INSTR'"
+            default="/dev/spcm0", min_length=1, max_length=256,
+            description="card to open: '/dev/spcmN' or 'TCPIP::<ip>::inst0::INSTR'"
         )
         amplitude_mv: Annotated[int, Field(ge=80, le=2500)] | list[Annotated[int, Field(ge=80, le=2500)]] = Field(
-            default=140, description="output amplitude per channel in mV (one value for all channels, or one per channel)"
+            default=140,
+            description="output amplitude per channel in mV (one value for all channels, or one per channel)"
         )
         external_reference_hz: Annotated[float, Field(gt=0, le=1e9)] | None = Field(
             default=None, description="frequency of an external reference clock (e.g. 10e6); null = internal PLL"
         )
         trigger: Literal["ext0", "software"] = Field(
             default="ext0",
-            description="what ends a step that waits for a trigger: the EXT0 input (the lab sequencer) or software only",
+            description="what ends a step that waits for a trigger: the EXT0 input (the lab sequencer) or software "
+            "only",
         )
         trigger_edge: Literal["rising", "falling"] = "rising"
         trigger_level_mv: Annotated[int, Field(ge=-10000, le=10000)] = 1500
         trigger_termination_50ohm: bool = False
-        camera_line: Annotated[int, Field(ge=0, le=2)] = Field(default=0, description="X line pulsed to trigger the camera")
+        camera_line: Annotated[int, Field(ge=0, le=2)] = Field(
+            default=0, description="X line pulsed to trigger the camera"
+        )
         resume_line: Annotated[int, Field(ge=0, le=2)] = Field(
             default=1, description="X line pulsed to resume the lab sequencer when a shot ends"
         )
@@ -465,13 +476,16 @@ class DevicesConfig(_Model):
         stop_level: Literal["zero", "hold_last"] = Field(
             default="zero", description="what the outputs do when the card is stopped"
         )
-        dma_timeout_s: Annotated[float, Field(gt=0, le=600)] = Field(default=5.0, description="a segment upload that takes longer is a fault")
+        dma_timeout_s: Annotated[float, Field(gt=0, le=600)] = Field(
+            default=5.0, description="a segment upload that takes longer is a fault"
+        )
 
         @model_validator(mode="after")
         def _distinct_lines(self) -> DevicesConfig.SpectrumSettings:
             if self.camera_line == self.resume_line:
                 raise ValueError(
-                    f"devices.spectrum.camera_line and resume_line must be different X lines (both are X{self.camera_line})"
+                    "devices.spectrum.camera_line and resume_line must be different X lines "
+                    f"(both are X{self.camera_line})"
                 )
             return self
 
@@ -479,7 +493,9 @@ class DevicesConfig(_Model):
         """The Andor iXon EMCCD through Andor's Python SDK wrapper ``pyAndorSDK2`` (``drivers/andor.py``)."""
 
         index: Annotated[int, Field(ge=0, le=7)] = Field(default=0, description="which Andor camera (0 = the first)")
-        sdk_path: str = Field(default="", max_length=4096, description="directory handed to the SDK's Initialize ('' = its default)")
+        sdk_path: str = Field(
+            default="", max_length=4096, description="directory handed to the SDK's Initialize ('' = its default)"
+        )
         temperature_c: Annotated[int, Field(ge=-120, le=30)] = -60
         cooler: bool = True
         keep_cooling_on_close: bool = Field(
@@ -491,7 +507,9 @@ class DevicesConfig(_Model):
         roi_offset_px: tuple[Annotated[int, Field(ge=0, le=16384)], Annotated[int, Field(ge=0, le=16384)]] = Field(
             default=(0, 0), description="(x, y) sensor pixel of the ROI's first column and row"
         )
-        hs_speed_index: Annotated[int, Field(ge=0, le=64)] = Field(default=0, description="horizontal shift speed index")
+        hs_speed_index: Annotated[int, Field(ge=0, le=64)] = Field(
+            default=0, description="horizontal shift speed index"
+        )
         vs_speed_index: Annotated[int, Field(ge=0, le=64)] | None = Field(
             default=None, description="vertical shift speed index; null = the index of camera.vertical_shift_s"
         )
@@ -512,7 +530,8 @@ class DevicesConfig(_Model):
             default=None, max_length=4096, description="the grabber's camera configuration file (.pcf) for the iXon"
         )
         library: str | None = Field(
-            default=None, max_length=4096, description="path of the PHX library; null = search the usual install locations"
+            default=None, max_length=4096,
+            description="path of the PHX library; null = search the usual install locations"
         )
         board: Annotated[int, Field(ge=1, le=7)] = 1
         channel: Annotated[int, Field(ge=1, le=2)] = 1

@@ -2,7 +2,8 @@
 # Set up the project's virtual environment (once) and run it.
 #   bash scripts/dev.sh serve [llrs serve arguments] the lab server on the simulated lab: dashboard + REST API
 #   bash scripts/dev.sh run   [llrs run arguments]   a few shots on the simulated lab
-#   bash scripts/dev.sh test  [pytest arguments]     the whole test suite (installs Chromium for the browser test)
+#   bash scripts/dev.sh test  [pytest arguments]     ruff, mypy and the whole test suite (installs Chromium for the
+#                                                    browser test); with arguments, only pytest with them
 # Needs only Python 3.11+; installs python3-venv (and, for `test`, chromium) through apt when missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -52,7 +53,13 @@ case "$cmd" in
     test)
         ensure_venv
         ensure_chromium
-        exec "$VENV/bin/python" -m pytest "$@"
+        if [ $# -gt 0 ]; then exec "$VENV/bin/python" -m pytest "$@"; fi
+        # The whole check, as CI runs it: lint and types, the default suite, then the benchmarks' short smoke
+        # runs (marked ``bench``: left out of the default run because they take tens of seconds).
+        "$VENV/bin/ruff" check .
+        "$VENV/bin/mypy"
+        "$VENV/bin/python" -m pytest
+        exec "$VENV/bin/python" -m pytest -m bench
         ;;
     *)
         echo "usage: bash scripts/dev.sh {serve|run|test} [args]" >&2; exit 2

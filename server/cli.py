@@ -43,7 +43,9 @@ def run_summary(records: list[ShotRecord]) -> dict:
         "successes": sum(1 for r in records if r.lab_report.get("target_filled", False)),
         "engine_successes": sum(1 for r in records if r.success),
         "cycles_mean": sum(rearrangements) / max(len(records), 1),
-        "outcomes": {o: sum(1 for r in records if r.outcome.value == o) for o in sorted({r.outcome.value for r in records})},
+        "outcomes": {
+            o: sum(1 for r in records if r.outcome.value == o) for o in sorted({r.outcome.value for r in records})
+        },
         "underruns": sum(c.underruns for r in records for c in r.cycles),
         "stages": {k: {"median_us": v["median_us"], "p99_us": v["p99_us"]} for k, v in stages.items()},
         "per_shot": [_shot_summary(r) for r in records],

@@ -24,7 +24,7 @@ import math
 import uuid
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -96,7 +96,9 @@ def _open_h5(path: Path, mode: str) -> Iterator[h5py.File]:
     try:
         fh = open_regular(path, what="shot file", max_bytes=MAX_SHOT_FILE_BYTES, write=mode == "r+")
     except FileNotFoundError:
-        raise ShotFileMissing(f"{path}: no such shot file (results are written into the shot file, never beside it)") from None
+        raise ShotFileMissing(
+            f"{path}: no such shot file (results are written into the shot file, never beside it)"
+        ) from None
     with fh:
         try:
             f = h5py.File(fh, mode)
@@ -154,7 +156,9 @@ def shot_overrides(globals_: Mapping[str, Any]) -> dict[str, Any]:
     return patch
 
 
-def shot_config(base: SystemConfig | None, globals_: Mapping[str, Any], *, source: str = "shot file") -> SystemConfig | None:
+def shot_config(
+    base: SystemConfig | None, globals_: Mapping[str, Any], *, source: str = "shot file"
+) -> SystemConfig | None:
     """The configuration for this shot: ``base`` with the globals' overrides, or ``None`` when there are none
     (the engine then keeps its current configuration)."""
     patch = shot_overrides(globals_)
@@ -195,7 +199,7 @@ def _write_group(path: Path, fill: Callable[[h5py.Group], None]) -> None:
         tmp = f"llrs.partial-{uuid.uuid4().hex[:8]}"
         group = results.create_group(tmp)
         try:
-            group.attrs["written_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+            group.attrs["written_at"] = datetime.now(UTC).isoformat(timespec="seconds")
             group.attrs["writer"] = "llrs"
             fill(group)
             results.move(tmp, "llrs")
@@ -245,7 +249,8 @@ def write_shot_results(
         names = [s for s in STAGES if any(s in c.stage_s for c in cycles)]
         names += sorted({s for c in cycles for s in c.stage_s} - set(names))
         for stage in names:
-            stages.create_dataset(stage, data=np.array([c.stage_s.get(stage, math.nan) for c in cycles], dtype=np.float64))
+            per_cycle = np.array([c.stage_s.get(stage, math.nan) for c in cycles], dtype=np.float64)
+            stages.create_dataset(stage, data=per_cycle)
         if record.images:
             g.create_dataset("images", data=np.stack(record.images), compression="gzip")
 
@@ -305,7 +310,9 @@ def run_shot_file(
     config = shot_config(base_config, globals_, source=str(path))
     applied = config if config is not None else base_config
     if not bool(globals_.get("llrs_enabled", True)):
-        write_shot_fault(path, "llrs_enabled is false: no rearrangement in this shot", config=applied, outcome="skipped")
+        write_shot_fault(
+            path, "llrs_enabled is false: no rearrangement in this shot", config=applied, outcome="skipped"
+        )
         return None
     try:
         record = run_shot(config)

@@ -139,7 +139,8 @@ class ArmRequest(_Request):
     """``POST /api/arm`` body (optional)."""
 
     shots: int | None = Field(
-        default=None, ge=1, le=1_000_000, description="disarm after this many triggered shots; null: stay armed until stop"
+        default=None, ge=1, le=1_000_000,
+        description="disarm after this many triggered shots; null: stay armed until stop",
     )
 
     _shots_is_a_number = field_validator("shots", mode="before")(_not_bool)

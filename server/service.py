@@ -27,11 +27,11 @@ import sys
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import ValidationError
@@ -231,7 +231,7 @@ class LabService:
         else:
             self._config = self._et.config
             self._learn_shot_limit()
-        if self._store is not None:
+        if self._store is not None and self._config is not None:
             self._store.note_config(self._config)
         self._runner.start()
         if run:
@@ -302,7 +302,7 @@ class LabService:
         return self._want_run.is_set() and not self._closing.is_set()
 
     @property
-    def trigger_source(self) -> str:
+    def trigger_source(self) -> Literal["rest", "hardware"]:
         """What starts a shot while armed: ``"hardware"`` (``loop.trigger: hardware``) or ``"rest"``."""
         return "hardware" if self.config.loop.trigger == "hardware" else "rest"
 
@@ -358,7 +358,8 @@ class LabService:
             if special.devices != base.devices:
                 raise ConfigRejected(
                     [{"loc": ["body", "config", "devices"], "type": "override_devices",
-                      "msg": "a one-shot override cannot change the devices; change them with PUT or PATCH /api/config"}]
+                      "msg": "a one-shot override cannot change the devices; "
+                             "change them with PUT or PATCH /api/config"}]
                 )
             self._apply(special, remember=False)
             try:
@@ -395,7 +396,9 @@ class LabService:
         """Acquire ``images`` frames and fit the PSF and trap lattice; kept under an id, not applied."""
         return self._calibrate("PSF", psf_calibration, images)
 
-    def _calibrate(self, kind: str, fit: Callable[[np.ndarray, SystemConfig], dict[str, Any]], images: int) -> dict[str, Any]:
+    def _calibrate(
+        self, kind: str, fit: Callable[[np.ndarray, SystemConfig], dict[str, Any]], images: int
+    ) -> dict[str, Any]:
         """Acquire ``images`` frames (at most ``MAX_CALIBRATION_BYTES`` of them) and fit; ``CalibrationFailed``
         when the frames cannot be fitted."""
         with self._engine_turn():
@@ -463,6 +466,7 @@ class LabService:
             shots, successes, truth, fault = self._shots, self._successes, self._truth_successes, self._fault
             activity = self._activity[-1] if self._activity else None
             armed = self._armed
+        state: Literal["idle", "armed", "running", "fault"]
         if fault is not None:
             state = "fault"
         elif self.running or activity is not None:
@@ -481,7 +485,7 @@ class LabService:
             activity=activity,
             running=self.running,
             armed=armed,
-            trigger=self.trigger_source,  # type: ignore[arg-type]
+            trigger=self.trigger_source,
             pause_s=self.pause_s,
             devices=DevicesOut(
                 camera=cfg.devices.camera,
@@ -536,7 +540,9 @@ class LabService:
         if not self._lock.acquire(timeout=COMMAND_WAIT_S):
             with self._state_lock:
                 doing = ", ".join(self._activity) or "a command"
-            raise EngineBusy(f"the engine has been busy ({doing}) for over {COMMAND_WAIT_S:g} s; nothing was done, try again")
+            raise EngineBusy(
+                f"the engine has been busy ({doing}) for over {COMMAND_WAIT_S:g} s; nothing was done, try again"
+            )
         try:
             yield
         finally:
@@ -618,7 +624,9 @@ class LabService:
                 open_regular(path, what="tone file", max_bytes=MAX_TONE_FILE_BYTES).close()
             except (ValueError, FileNotFoundError) as err:
                 msg = str(err) if not isinstance(err, FileNotFoundError) else f"tone file {csv!r}: no such file"
-                raise ConfigRejected([{"loc": ["body", "array", axis, "csv"], "msg": msg, "type": "file_refused"}]) from None
+                raise ConfigRejected(
+                    [{"loc": ["body", "array", axis, "csv"], "msg": msg, "type": "file_refused"}]
+                ) from None
             changes[axis] = getattr(config.array, axis).model_copy(update={"csv": str(path)})
         if not changes:
             return config

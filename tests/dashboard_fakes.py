@@ -6,12 +6,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from server_fakes import FakeEngine, example_config
-
 from engine.engine import EngineThread
 from frontend.dashboard import Dashboard
 from server.runstore import RunStore
 from server.service import LabService
+from server_fakes import FakeEngine, example_config
 
 
 @contextmanager

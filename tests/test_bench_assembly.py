@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import wait_until
 
 from bench.assembly import (
     LOSS_CAUSES,
@@ -24,6 +23,7 @@ from bench.assembly import (
     summarize,
     wilson_interval,
 )
+from conftest import wait_until
 
 LOSSLESS = Cell(problem="16x32", planner=None, loss="lossless", lifetime_s=6000.0)
 

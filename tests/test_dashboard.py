@@ -9,14 +9,14 @@ from types import SimpleNamespace
 
 import httpx
 import pytest
+
 from conftest import wait_until
 from dashboard_fakes import dashboard_on_fake_lab
-from server_fakes import FakeEngine, example_config
-
 from engine.engine import EngineThread
 from frontend.dashboard import Dashboard
 from server.runstore import RunStore
 from server.service import LabService
+from server_fakes import FakeEngine, example_config
 
 pytest.importorskip("viser")
 

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import wait_until
 
+from conftest import wait_until
 from engine.config import load_config
 from engine.psf import frame_shape
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+
 from test_dashboard_browser import CHROMIUM, CHROMIUM_ARGS, llrs_serve
 
 if not Path(CHROMIUM).exists():

@@ -7,8 +7,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from dashboard_fakes import dashboard_on_fake_lab
 
+from dashboard_fakes import dashboard_on_fake_lab
 from frontend.dashboard import Dashboard
 from server.service import LabService
 

@@ -18,7 +18,7 @@ from drivers.activesilicon import DMA_TIMEOUT_MS, PHX, ActiveSiliconFrameSource,
 from drivers.andor import LINUX_SDK_DIR, AndorCamera, FrameSource, status_name
 from engine.config import CameraConfig, DevicesConfig
 from engine.devices import Camera, DeviceError
-from tests.fake_activesilicon import H, FakePhxLibrary
+from tests.fake_activesilicon import FakePhxLibrary, H
 from tests.fake_andor import AC_SETFUNCTION_EMCCDGAIN, DRV_SUCCESS, make_fake_andor, pattern
 
 
@@ -337,5 +337,6 @@ def test_grabber_open_errors_are_clear(tmp_path: Path, pcf: Path) -> None:
 def test_the_adapters_satisfy_the_protocols(pcf: Path) -> None:
     cam, _ = andor()
     assert isinstance(cam, Camera)
-    source = ActiveSiliconFrameSource(DevicesConfig.ActiveSiliconSettings(config_file=str(pcf)), library=FakePhxLibrary())
+    settings = DevicesConfig.ActiveSiliconSettings(config_file=str(pcf))
+    source = ActiveSiliconFrameSource(settings, library=FakePhxLibrary())
     assert isinstance(source, FrameSource)

@@ -11,9 +11,8 @@ import tracemalloc
 
 import numpy as np
 import pytest
-from conftest import lossless
-from sim_signals import chain_config
 
+from conftest import lossless
 from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine, EngineThread
@@ -21,6 +20,7 @@ from engine.records import Outcome
 from engine.solvers import PlannerError
 from engine.timing import STAGES
 from server.cli import main as cli_main
+from sim_signals import chain_config
 
 
 @pytest.fixture(scope="module")

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import INJECTED_FAULTS
-from sim_signals import chain_config
 
+from conftest import INJECTED_FAULTS
 from drivers.sim.lab import SimLab, build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine
 from engine.records import Outcome
+from sim_signals import chain_config
 
 
 def chain(**faults: object) -> SystemConfig:

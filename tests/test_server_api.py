@@ -14,13 +14,13 @@ import h5py
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from server_fakes import FakeEngine, example_config
 
 from engine.engine import EngineThread
 from server.app import create_app
 from server.hub import LiveHub
 from server.runstore import RunStore
 from server.service import LabService
+from server_fakes import FakeEngine, example_config
 
 
 def make_service(tmp_path: Path, **engine_kw: object) -> tuple[LabService, FakeEngine]:

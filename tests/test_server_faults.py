@@ -9,15 +9,15 @@ from pathlib import Path
 
 import h5py
 import pytest
-from conftest import INJECTED_FAULTS
 from fastapi.testclient import TestClient
-from sim_signals import chain_config
 
+from conftest import INJECTED_FAULTS
 from drivers.sim.lab import build_sim_lab
 from engine.engine import Engine, EngineThread
 from server.app import create_app
 from server.runstore import RunStore
 from server.service import LabService
+from sim_signals import chain_config
 
 NO_FAULTS = {"camera": "none", "awg_upload": "none", "upload_delay_s": 0.0, "solver": "none", "disk_full": False}
 

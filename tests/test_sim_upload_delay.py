@@ -6,12 +6,12 @@ delay can only show as upload time, never as an underrun."""
 from __future__ import annotations
 
 import pytest
-from sim_signals import chain_config, grid_config
 
 from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine
 from engine.records import Outcome
+from sim_signals import chain_config, grid_config
 
 WAVEFORMS_PER_SEGMENT = SystemConfig().awg.waveforms_per_segment
 

@@ -9,15 +9,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from aod_parallel_golden import STORE, plan_digests
-from numba_twins import jit_and_python_outputs
 
+from aod_parallel_golden import STORE, plan_digests
 from bench.solvers import solvable_fillings
 from engine.operations import EXTRACT
 from engine.solvers import PlannerError, Solver, UnsolvableError, solve
 from engine.solvers.aod_parallel import AODParallelPlanner
 from engine.solvers.validate import validate
 from engine.targets import centre_target, rectangle_target
+from numba_twins import jit_and_python_outputs
 
 REPO = Path(__file__).resolve().parents[1]
 

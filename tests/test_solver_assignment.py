@@ -7,11 +7,11 @@ import time
 
 import numpy as np
 import pytest
-from numba_twins import jit_and_python_outputs
 from scipy.optimize import linear_sum_assignment
 
 from engine.solvers import PlannerError, Solver, UnsolvableError, solve
 from engine.solvers.validate import validate
+from numba_twins import jit_and_python_outputs
 
 NY = NX = 32
 YY, XX = np.mgrid[:NY, :NX]

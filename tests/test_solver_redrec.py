@@ -7,13 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from numba_twins import jit_and_python_outputs
 from scipy.optimize import linear_sum_assignment
 
 from bench.solvers import solvable_fillings
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations
 from engine.solvers.redrec import BATCHINGS, RedRecPlanner
 from engine.targets import centre_target
+from numba_twins import jit_and_python_outputs
 
 REPO = Path(__file__).resolve().parents[1]
 

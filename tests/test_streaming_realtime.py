@@ -8,7 +8,6 @@ import os
 
 import numpy as np
 import pytest
-from sim_signals import grid_config
 
 from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
@@ -17,6 +16,7 @@ from engine.solvers import solve
 from engine.streaming import RealtimeScheduling, Streamer
 from engine.targets import build_target
 from engine.waveforms import WaveformBank
+from sim_signals import grid_config
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "sched_getscheduler"), reason="Linux scheduling calls")
 

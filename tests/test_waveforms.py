@@ -12,8 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.signal import hilbert
-from sim_signals import chain_config, grid_config
-from waveform_reference import ReferenceSynth
 
 from drivers.sim.decode import SampleDecoder
 from drivers.sim.world import World
@@ -41,6 +39,8 @@ from engine.waveforms import (
     table_formula_bytes,
 )
 from engine.waveforms.kernels import _RUN0
+from sim_signals import chain_config, grid_config
+from waveform_reference import ReferenceSynth
 
 ROOT = Path(__file__).resolve().parents[1]
 SHAPES = {"min-jerk": {"shape": "min-jerk"}, "tanh": {"shape": "tanh", "shape_sharpness": 6.0},

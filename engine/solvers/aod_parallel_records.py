@@ -34,14 +34,15 @@ K_HOP = 1
 K_COLUMN = 2
 
 
-if numba_config.DISABLE_JIT:  # the kernels run as plain Python (the reference the tests compare against)
+if numba_config.DISABLE_JIT:  # type: ignore[attr-defined]  # numba sets it at import; its stubs omit it
+    # the kernels run as plain Python (the reference the tests compare against)
 
     def _popcount(x: np.uint64) -> int:
         return bin(int(x)).count("1")
 
     def _lowbit_index(x: np.uint64) -> int:
-        x = int(x)
-        return (x & -x).bit_length() - 1
+        word = int(x)
+        return (word & -word).bit_length() - 1
 
 else:
 
@@ -65,12 +66,12 @@ else:
 
     @njit(cache=True, nogil=True, inline="always")
     def _popcount(x: np.uint64) -> int:
-        return int(_ctpop(x))
+        return int(_ctpop(x))  # type: ignore[call-arg]  # numba's stubs type an @intrinsic call as its typing hook
 
     @njit(cache=True, nogil=True, inline="always")
     def _lowbit_index(x: np.uint64) -> int:
         """Index of the lowest set bit of a non-zero word."""
-        return int(_cttz(x))
+        return int(_cttz(x))  # type: ignore[call-arg]  # numba's stubs type an @intrinsic call as its typing hook
 
 
 @njit(cache=True, nogil=True, inline="always")

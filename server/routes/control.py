@@ -43,7 +43,7 @@ def arm(service: Service, request: Annotated[ArmRequest | None, Body()] = None) 
     service.arm(shots=request.shots if request is not None else None)
     return ArmOut(
         armed=service.armed,
-        trigger=service.trigger_source,  # type: ignore[arg-type]  # a str typed by the service; "rest" or "hardware"
+        trigger=service.trigger_source,
         shots_left=service.armed_shots_left,
     )
 

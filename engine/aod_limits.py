@@ -165,6 +165,21 @@ def _segment_levels(samples: np.ndarray, slot_samples: int, peak: np.ndarray, me
         mean_square[c] = best / length if length > 0 else 0.0
 
 
+@njit(cache=True, nogil=True)
+def _flat_peak(flat: np.ndarray) -> int:
+    """The largest |count| of a contiguous ``int16`` buffer, every channel at once: one pass LLVM vectorises
+    (~4 us for a 32-slot two-channel segment, against ~100 us for the per-channel, per-slot levels)."""
+    hi = np.int16(0)
+    lo = np.int16(0)
+    for i in range(flat.size):
+        v = flat[i]
+        if v > hi:
+            hi = v
+        if v < lo:
+            lo = v
+    return int(max(np.int32(hi), -np.int32(lo)))
+
+
 def segment_levels(samples: np.ndarray, slot_samples: int) -> tuple[np.ndarray, np.ndarray]:
     """``(peak |count|, largest per-slot mean square count)`` per channel of ``int16[n, ch]`` samples."""
     peak = np.empty(samples.shape[1], dtype=np.float64)
@@ -186,11 +201,31 @@ class SegmentGuard:
         self._peak = np.empty(len(limits), dtype=np.float64)
         self._mean_square = np.empty(len(limits), dtype=np.float64)
         _segment_levels(np.zeros((slot_samples, len(limits)), np.int16), slot_samples, self._peak, self._mean_square)
+        _flat_peak(np.zeros(1, np.int16))
+
+    def _within_by_peak(self, samples: np.ndarray) -> bool:
+        """True when the segment's largest |count| over all channels already proves every limit: no sample
+        above any channel's peak limit, and no slot's mean square above that peak squared, so no slot's power
+        above any channel's power limit. Exact in what it accepts; whatever it cannot prove goes to the
+        per-channel, per-slot measurement (which also names the channel and the limit)."""
+        if not samples.flags.c_contiguous:
+            return False
+        peak = float(_flat_peak(samples.reshape(-1)))
+        for lim in self.limits:
+            if peak / lim.full_scale_counts > lim.max_peak_amplitude * (1 + _REL_TOL):
+                return False
+            if lim.max_power_w is not None:
+                volts = peak * lim.full_scale_v / lim.full_scale_counts
+                if volts * volts / lim.load_ohm > lim.max_power_w * (1 + _REL_TOL):
+                    return False
+        return True
 
     def problem(self, samples: np.ndarray) -> str | None:
         """Why ``samples`` (``int16[n, ch]``) must not be played, or None."""
         if samples.shape[1] < len(self.limits):
             return f"a segment of {samples.shape[1]} channel(s) for a card configured with {len(self.limits)}"
+        if self._within_by_peak(samples):
+            return None
         _segment_levels(samples[:, : len(self.limits)], self.slot_samples, self._peak, self._mean_square)
         for lim in self.limits:
             peak = self._peak[lim.channel] / lim.full_scale_counts

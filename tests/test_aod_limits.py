@@ -217,3 +217,25 @@ def test_the_streamer_refuses_a_rendered_segment_over_the_limits_before_uploadin
     assert awg.uploads == 0
     guard = SegmentGuard(cfg.channel_limits(), cfg.waveforms.slot_samples)
     assert guard.problem(bank.render_slots(ops)) is None  # within the configured limits the same render passes
+
+
+def test_the_guards_peak_shortcut_decides_as_the_full_measurement() -> None:
+    """A segment the all-channel peak proves safe is accepted without the per-slot sums; any other goes to the
+    full measurement, so the guard's verdict (and its message) is the full measurement's, segment by segment."""
+    from engine.aod_limits import ChannelLimits
+
+    rng = np.random.default_rng(4)
+    slot = 64
+    for trial in range(60):
+        amplitude = int(rng.integers(1, 32767))
+        samples = rng.integers(-amplitude, amplitude + 1, (slot * 8, 2)).astype(np.int16)
+        limits = [
+            ChannelLimits(channel=c, name=f"ch{c}", max_peak_amplitude=float(rng.uniform(0.2, 1.0)),
+                          max_power_w=float(rng.choice([1e-4, 1e-3, 1e-2])) if trial % 3 else None,
+                          load_ohm=50.0, full_scale_counts=32767.0, full_scale_v=0.5)
+            for c in range(2)
+        ]  # fmt: skip
+        guard = SegmentGuard(limits, slot)
+        full = SegmentGuard(limits, slot)
+        full._within_by_peak = lambda _samples: False  # type: ignore[method-assign]  # the full measurement only
+        assert guard.problem(samples) == full.problem(samples)

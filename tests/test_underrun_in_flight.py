@@ -10,6 +10,7 @@ from drivers.sim.lab import build_sim_lab
 from engine.engine import Engine
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations
 from engine.records import Outcome, atoms_in_flight
+from engine.streaming import SequenceLayout
 from tests.test_sim_upload_delay import grid
 
 
@@ -17,8 +18,7 @@ def test_the_record_names_the_atoms_the_failsafe_holds_and_none_is_lost() -> Non
     config = grid(upload_delay_s=10e-3)
     devices, lab = build_sim_lab(config)
     engine = Engine(config, devices, lab=lab)
-    layout = engine._p.streamer.layout if engine._p is not None else None
-    assert layout is not None
+    layout = SequenceLayout.for_config(config)
     held_at_underrun: list[list[int]] = []  # the world's tweezer sites each time the host finds a failsafe looping
     current_step = devices.awg.current_step
 

@@ -10,7 +10,8 @@ from drivers.sim.lab import build_sim_lab
 from engine.engine import Engine
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations
 from engine.records import Outcome, atoms_in_flight
-from engine.streaming import SequenceLayout
+from engine.streaming import SequenceLayout, StreamReport
+from engine.timing import StageTimer
 from tests.test_sim_upload_delay import grid
 
 
@@ -69,3 +70,41 @@ def test_in_flight_atoms_of_a_chain_are_those_carried_off_their_sites() -> None:
     ops.append(SHIFT, [0], [3], [0], [1])
     assert atoms_in_flight(ops, occupancy, 1, chain=True).tolist() == [[2, 3]]
     assert atoms_in_flight(ops, occupancy, 2, chain=True).tolist() == [[2, 4]]
+
+
+def test_the_failsafe_continues_each_segment_steadily_and_in_phase() -> None:
+    """For every control segment of an underrun plan that has a failsafe, as the card holds them: the failsafe
+    starts where the next control segment starts and ends where its own control segment ends (to 2 LSB), so
+    falling into it, looping it and leaving it are all phase-continuous; and the simulated AWG's decoder finds it
+    steady (no tone moves or switches on or off), so looping it pauses the moves without touching any atom."""
+    config = grid(upload_delay_s=10e-3)
+    devices, lab = build_sim_lab(config)
+    engine = Engine(config, devices, lab=lab)
+    layout = SequenceLayout.for_config(config)
+    awg = lab.awg  # the simulated card: its memory and its decoder
+    joins: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (control k, its failsafe, control k+1)
+    streamer = engine._p.streamer if engine._p is not None else None
+    assert streamer is not None
+    stream = streamer.stream
+
+    def watched_stream(ops: Operations, timer: StageTimer | None = None) -> StreamReport:
+        report = stream(ops, timer)
+        if report.underruns:
+            for k in range(report.n_segments - 1):
+                segments = (layout.control_segment(k), layout.failsafe_segment(k), layout.control_segment(k + 1))
+                held = [awg.segment_samples(s) for s in segments]
+                assert all(h is not None for h in held)
+                joins.append(tuple(np.asarray(h, dtype=np.int32) for h in held))  # type: ignore[arg-type]  # tuple() of 3 types as tuple[ndarray, ...]
+        return report
+
+    streamer.stream = watched_stream  # type: ignore[method-assign]  # a probe on the streamer
+    record = engine.run_shot()
+    assert record.outcome is Outcome.SUCCESS, record.fault
+    assert any(np.abs(failsafe).max() > 100 for _, failsafe, _ in joins)  # some failsafe holds moving tweezers
+    slot = streamer.bank.slot_samples
+    for control, failsafe, following in joins:
+        assert failsafe.shape[0] == slot
+        assert np.abs(failsafe[-3:] - control[-3:]).max() <= 2  # falls in: continues where the segment ends
+        assert np.abs(failsafe[:3] - following[:3]).max() <= 2  # leaves: the next segment starts in phase
+        assert awg.decoder.decode(failsafe).stationary  # steady: every tone holds its frequency
+        assert awg.decoder.decode(np.tile(failsafe, (3, 1))).stationary  # and stays steady when looped

@@ -22,6 +22,8 @@ A cycle uploads control segments 0 and 1, then points home at control step 0: th
 segment k plays, segment k+2 is rendered and uploaded, and only then are control step k+1 and its failsafe
 pointed at it. If the host is late, the card falls into the failsafe after segment k+1, which holds the
 mobile tweezers where that segment left them (a pause, not a loss), and resumes when the pointer arrives.
+Each report lists, per underrun, how many slots had played (``failsafe_after_slots``); after playback the
+engine replays them through the move model to record which atoms the failsafe held (``CycleRecord.in_flight``).
 Plans of at most two segments' worth of slots take the short path: one upload, one pointer, no failsafe
 needed. Segments are written at their exact length (no padding to whole segments), so a 20-slot plan
 streams in 20 slots, not 64.

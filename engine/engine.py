@@ -21,7 +21,7 @@ from engine.config import SystemConfig
 from engine.devices import DeviceError, DeviceSet
 from engine.host import EngineCommands
 from engine.imaging import Detector, calibration_frames
-from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves
+from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves, atoms_in_flight
 from engine.solvers import LossWeights, Planner, Solver, UnsolvableError
 from engine.streaming import Streamer
 from engine.targets import build_target, target_filled
@@ -94,6 +94,7 @@ class _Pipeline:
     timer: StageTimer
     counts_history: np.ndarray  # float32[max_cycles + 1, n_traps]: each cycle's PSF-weighted counts
     steps_history: list[np.ndarray | None]  # each cycle's plan steps, copied once its playback has started
+    in_flight_history: list[list[list[list[int]]]]  # per cycle, per underrun: the atoms its failsafe held
 
 
 class Engine:
@@ -139,6 +140,7 @@ class Engine:
             timer=StageTimer(dev.clock.now_s, config.loop.max_cycles + 1, charge=getattr(dev.clock, "charge", None)),
             counts_history=np.zeros((config.loop.max_cycles + 1, arr.n_traps), dtype=np.float32),
             steps_history=[None] * (config.loop.max_cycles + 1),
+            in_flight_history=[[] for _ in range(config.loop.max_cycles + 1)],
         )
         pipeline.solver.check_target(target)
         target_filled(pipeline.occupancy, target)  # compile (or load) before the engine reports ready
@@ -202,6 +204,7 @@ class Engine:
             self.lab.prepare_shot()
         p.timer.reset()
         p.steps_history[:] = [None] * len(p.steps_history)
+        p.in_flight_history[:] = [[] for _ in p.in_flight_history]
         latencies = np.zeros(p.config.loop.max_cycles + 1)
         cycle_times = np.zeros((p.config.loop.max_cycles + 1, 2))  # cycle began, image in memory (clock s)
         plan_stats = np.zeros((p.config.loop.max_cycles + 1, 3), dtype=np.int64)  # slots, steps, underruns
@@ -252,6 +255,7 @@ class Engine:
                     counts=p.counts_history[c].copy(),
                     moves=atom_moves(steps) if (steps := p.steps_history[c]) is not None else None,
                     planner=planners[c],
+                    in_flight=p.in_flight_history[c],
                 )
             )
         if self.lab is not None:
@@ -323,6 +327,10 @@ class Engine:
         plan_stats[cycle] = (report.n_slots, plan.n_steps, report.underruns)
         p.steps_history[cycle] = plan.steps.copy()  # after playback started: off the latency path
         planners[cycle] = plan.algorithm
+        chain = p.config.array.trap_source == "aod"  # after playback ended: off the latency path
+        p.in_flight_history[cycle] = [
+            atoms_in_flight(plan.operations, p.occupancy, n, chain=chain).tolist() for n in report.failsafe_after_slots
+        ]
         return None
 
     def _rehearse(self, p: _Pipeline) -> None:

@@ -8,7 +8,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CycleRecord", "Outcome", "ShotRecord", "atom_moves", "occupancy_to_rows"]
+from engine.move_model import MoveState, new_events, replay_operations
+from engine.operations import Operations
+
+__all__ = ["CycleRecord", "Outcome", "ShotRecord", "atom_moves", "atoms_in_flight", "occupancy_to_rows"]
 
 
 class Outcome(StrEnum):
@@ -37,6 +40,35 @@ def atom_moves(steps: np.ndarray) -> np.ndarray:
     return np.array(moves, dtype=np.int32).reshape(-1, 2)
 
 
+def atoms_in_flight(ops: Operations, occupancy: np.ndarray, n_played: int, *, chain: bool) -> np.ndarray:
+    """The atoms away from their traps after the first ``n_played`` slots of a plan that started from
+    ``occupancy``: ``int32[k, 2]`` rows (the trap it started the cycle in, the site it is at now), sorted by
+    source. This is what a failsafe holds when the card underruns there, so a shot record can say which
+    atoms paused mid-move (the slots are replayed through the move model, losses off, after the cycle).
+
+    Crossed AODs: the atoms held in tweezers. A chain (``chain``, its traps are the tones themselves): the
+    atoms whose tone has carried them off their starting site.
+    """
+    occ = np.asarray(occupancy, dtype=bool)
+    if not 0 <= n_played <= len(ops):
+        raise ValueError(f"n_played = {n_played} is outside the plan's 0..{len(ops)} slots")
+    state = MoveState(*occ.shape)
+    state.load(occ)
+    replay_operations(
+        ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, 0, n_played, chain,
+        state.static, state.held, state.held_mark, state.ids, state.atom_stats, True, state.arrivals,
+        state.tweezers, state.chain_scratch, state.y_tracks, state.x_tracks, new_events(), False, False,
+    )  # fmt: skip
+    source_of = np.flatnonzero(occ)  # atom ids are row-major ranks of the occupied traps (MoveState.load)
+    # where atoms are now (the chain's traps, or the tweezers), and their ids (stale where no atom is)
+    present, ids_now = (state.static, state.ids[0]) if chain else (state.held, state.ids[1])
+    sites = np.flatnonzero(present)
+    rows = np.stack([source_of[ids_now.reshape(-1)[sites]], sites], axis=1)
+    if chain:
+        rows = rows[rows[:, 0] != rows[:, 1]]
+    return rows[np.argsort(rows[:, 0], kind="stable")].astype(np.int32).reshape(-1, 2)
+
+
 @dataclass
 class CycleRecord:
     index: int
@@ -54,6 +86,9 @@ class CycleRecord:
     # so the live messages stay small: routes that need them read them from the record or the run file.
     counts: np.ndarray | None = None  # float32[n_traps]: the PSF-weighted counts of this cycle's image
     moves: np.ndarray | None = None  # int32[k, 2]: the plan's moved atoms, (source, destination) trap index
+    # per underrun of this cycle's plan, the atoms its failsafe held mid-move: [source trap, site] pairs
+    # (``atoms_in_flight``; empty when the plan streamed without an underrun)
+    in_flight: list[list[list[int]]] = field(default_factory=list)
 
     @property
     def atoms_moved(self) -> int:
@@ -76,6 +111,7 @@ class CycleRecord:
             "t_image_ms": self.t_image_s * 1e3,
             "atoms_moved": self.atoms_moved,
             "planner": self.planner,
+            "in_flight": self.in_flight,
         }
 
 

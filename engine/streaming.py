@@ -22,6 +22,8 @@ A cycle uploads control segments 0 and 1, then points home at control step 0: th
 segment k plays, segment k+2 is rendered and uploaded, and only then are control step k+1 and its failsafe
 pointed at it. If the host is late, the card falls into the failsafe after segment k+1, which holds the
 mobile tweezers where that segment left them (a pause, not a loss), and resumes when the pointer arrives.
+Each report lists, per underrun, how many slots had played (``failsafe_after_slots``); after playback the
+engine replays them through the move model to record which atoms the failsafe held (``CycleRecord.in_flight``).
 Plans of at most two segments' worth of slots take the short path: one upload, one pointer, no failsafe
 needed. Segments are written at their exact length (no padding to whole segments), so a 20-slot plan
 streams in 20 slots, not 64.
@@ -45,7 +47,7 @@ arrived), which ``llrs bench streaming`` reports.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -111,6 +113,13 @@ class SequenceLayout:
     def is_failsafe_step(self, step: int) -> bool:
         return 2 <= step <= 2 * self.n_control and step % 2 == 0
 
+    def slots_before_failsafe(self, step: int, slots_per_segment: int) -> int:
+        """How many of a plan's slots the card has played when it loops failsafe ``step``: all of control
+        segments 0..j, where j is the segment the failsafe holds (every segment but the last is full)."""
+        if not self.is_failsafe_step(step):
+            raise ValueError(f"step {step} is not a failsafe step of this layout")
+        return (step // 2) * slots_per_segment
+
 
 @dataclass
 class StreamReport:
@@ -126,6 +135,9 @@ class StreamReport:
     # finished segment k-1 and fallen into its failsafe (negative: it did); inf for the short path
     min_slack_s: float = float("inf")
     max_upload_s: float = 0.0  # the longest wait for one segment's DMA after its render (s)
+    # per underrun, the slots the card had played when it fell into a failsafe (the end of the control segment
+    # whose failsafe it loops): what the shot record replays to name the atoms that were in flight
+    failsafe_after_slots: list[int] = field(default_factory=list)
 
 
 class RealtimeScheduling:
@@ -390,8 +402,10 @@ class Streamer:
                 if report.underruns == 0:  # segments 0..k-1 played without pause: the card leaves k-1 then
                     slack_s = report.t_started_s + k * segment_s - self.clock.now_s()
                     report.min_slack_s = min(report.min_slack_s, slack_s)
-                if lay.is_failsafe_step(self.awg.current_step()):
+                step = self.awg.current_step()
+                if lay.is_failsafe_step(step):
                     report.underruns += 1
+                    report.failsafe_after_slots.append(lay.slots_before_failsafe(step, self.slots_per_segment))
                 self._link(k)
                 count = count_next
         self._finish(len(ops))

@@ -21,8 +21,10 @@ from engine.config import SystemConfig
 from engine.devices import DeviceError, DeviceSet
 from engine.host import EngineCommands
 from engine.imaging import Detector, calibration_frames
+from engine.operations import Plan
 from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves
 from engine.solvers import LossWeights, Planner, Solver, UnsolvableError
+from engine.solvers.validate import InvalidPlan, replay
 from engine.streaming import Streamer
 from engine.targets import build_target, target_filled
 from engine.timing import StageTimer
@@ -53,6 +55,22 @@ class Lab(Protocol):
     def shot_report(self, target: np.ndarray) -> dict[str, Any]:
         """After a shot: what the lab has to say about it (JSON-ready; ``target`` is the shot's ``bool[ny, nx]``)."""
         ...
+
+    def cycle_reports(self, n_cycles: int) -> list[dict[str, Any]]:
+        """After a shot: what the lab has to say about each of its ``n_cycles`` cycles (JSON-ready, one dict per
+        cycle), carried unread in ``CycleRecord.lab_report``. Asked once the shot is over, never during a cycle."""
+        ...
+
+
+def _pickups(plan: Plan, occupancy: np.ndarray, config: SystemConfig) -> int:
+    """Atoms the plan takes into a tweezer (extracts and captures, an atom taken twice counted twice), from a
+    replay of its slots on the detected ``occupancy``; -1 if the replay rejects the plan (the diagnostics never
+    fail a shot: the plan has been streamed already)."""
+    try:
+        report = replay(plan.operations, occupancy, trap_source=config.array.trap_source)
+    except InvalidPlan:
+        return -1
+    return int(report.atom_pickups.sum())
 
 
 class ShotWatchdogExpired(RuntimeError):
@@ -204,7 +222,8 @@ class Engine:
         p.steps_history[:] = [None] * len(p.steps_history)
         latencies = np.zeros(p.config.loop.max_cycles + 1)
         cycle_times = np.zeros((p.config.loop.max_cycles + 1, 2))  # cycle began, image in memory (clock s)
-        plan_stats = np.zeros((p.config.loop.max_cycles + 1, 3), dtype=np.int64)  # slots, steps, underruns
+        # slots, steps, underruns, pick-ups (-1: the plan's replay failed, pick-ups unknown)
+        plan_stats = np.zeros((p.config.loop.max_cycles + 1, 4), dtype=np.int64)
         planners = [""] * (p.config.loop.max_cycles + 1)  # the planner each cycle used (a strategy switches)
         n_cycles = 0
         gc_was_enabled = gc.isenabled()
@@ -234,6 +253,7 @@ class Engine:
             if gc_was_enabled:
                 gc.enable()
         record.duration_s = clock.now_s() - record.t_start_s
+        cycle_reports = self.lab.cycle_reports(n_cycles) if self.lab is not None else [{}] * n_cycles
         for c in range(n_cycles):
             occ = p.history[c].copy()
             record.cycles.append(
@@ -252,6 +272,8 @@ class Engine:
                     counts=p.counts_history[c].copy(),
                     moves=atom_moves(steps) if (steps := p.steps_history[c]) is not None else None,
                     planner=planners[c],
+                    pickups=int(plan_stats[c, 3]) if plan_stats[c, 3] >= 0 else None,
+                    lab_report=cycle_reports[c],
                 )
             )
         if self.lab is not None:
@@ -320,8 +342,8 @@ class Engine:
         timer.lap("III.batch")
         report = p.streamer.stream(plan.operations, timer)
         latencies[cycle] = report.t_started_s - t_image
-        plan_stats[cycle] = (report.n_slots, plan.n_steps, report.underruns)
         p.steps_history[cycle] = plan.steps.copy()  # after playback started: off the latency path
+        plan_stats[cycle] = (report.n_slots, plan.n_steps, report.underruns, _pickups(plan, p.occupancy, p.config))
         planners[cycle] = plan.algorithm
         return None
 

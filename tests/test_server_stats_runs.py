@@ -53,6 +53,14 @@ def test_stats_follow_the_shots_and_reset_needs_the_token(lab: LabService, clien
     np.testing.assert_allclose(loading, expected)
     assert stats["assembly"]["shots"] == 4
     assert sum(stats["assembly"]["cycles_histogram"]) == 4
+    planned = [c for r in records for c in r.cycles if c.n_slots > 0]
+    assert planned  # (the fake lab's seeded loading: every shot rearranges)
+    # the fake lab lets go of the atoms the target has no room for: its one loss, per cycle
+    lost = [c.lab_report["lost_by_cause"]["released"] for c in planned]
+    assert stats["assembly"]["lost_by_cause_per_cycle_mean"] == {"released": pytest.approx(np.mean(lost))}
+    assert stats["assembly"]["pickups_per_cycle_mean"] == pytest.approx(np.mean([c.pickups for c in planned]))
+    shot = client.get(f"/api/shots/{records[-1].shot_id}").json()
+    assert all("pickups" in c and "truth" in c for c in shot["cycles"])
     assert client.post("/api/stats/reset").status_code == 401
     assert client.post("/api/stats/reset", headers=AUTH).json()["config_digest"] == lab.config.digest()
     assert client.get("/api/stats").json()["shots"] == 0

@@ -6,8 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from drivers.sim.lab import LOSS_CAUSES, build_sim_lab
+from drivers.sim.lab import LOSS_CAUSES, SimLab, build_sim_lab
 from engine.config import load_config
 from engine.engine import Engine, _pickups, _solver
 from engine.solvers.validate import replay
@@ -16,7 +17,7 @@ from server.models import shot_out
 from sim_signals import grid_config
 
 
-def _lossy_engine() -> Engine:
+def _lossy_engine() -> tuple[Engine, SimLab]:
     """An 8x6 grid losing atoms to every cause the world models: transfers, steps, vacuum and imaging."""
     config = grid_config(
         8,
@@ -32,12 +33,12 @@ def _lossy_engine() -> Engine:
         },
     )
     devices, lab = build_sim_lab(config)
-    return Engine(config, devices, lab=lab)
+    return Engine(config, devices, lab=lab), lab
 
 
-def test_losses_by_cause_add_up_to_the_atoms_gone_between_images() -> None:
-    engine = _lossy_engine()
-    world = engine.lab.world
+def test_losses_by_cause_add_up_to_the_atoms_gone_between_images(monkeypatch: pytest.MonkeyPatch) -> None:
+    engine, lab = _lossy_engine()
+    world = lab.world
     atoms_at_exposure: list[int] = []
     expose = world.expose
 
@@ -45,13 +46,13 @@ def test_losses_by_cause_add_up_to_the_atoms_gone_between_images() -> None:
         atoms_at_exposure.append(world.n_atoms)  # the lab has applied the playback up to now
         return expose(t0_s, exposure_s)
 
-    world.expose = counting_expose  # type: ignore[method-assign]  # a test's window on the world
+    monkeypatch.setattr(world, "expose", counting_expose)  # a test's window on the world
     totals = dict.fromkeys(LOSS_CAUSES, 0)
     n_cycles = 0
     for _ in range(12):
         atoms_at_exposure.clear()
         record = engine.run_shot()
-        engine.lab.ground_truth()  # playback to the end of the shot
+        lab.ground_truth()  # playback to the end of the shot
         bounds = [*atoms_at_exposure, world.n_atoms]
         assert len(record.cycles) == len(atoms_at_exposure)
         for cycle, before, after in zip(record.cycles, bounds[:-1], bounds[1:], strict=True):
@@ -68,7 +69,7 @@ def test_losses_by_cause_add_up_to_the_atoms_gone_between_images() -> None:
 
 
 def test_pickups_per_cycle_and_the_rest_schema() -> None:
-    engine = _lossy_engine()
+    engine, _ = _lossy_engine()
     records = [engine.run_shot() for _ in range(6)]
     planned = [c for r in records for c in r.cycles if c.n_slots > 0]
     assert planned

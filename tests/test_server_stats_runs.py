@@ -104,7 +104,7 @@ def test_run_file_keeps_counts_and_moved_atoms(tmp_path: Path) -> None:
         outcome=Outcome.SUCCESS,
         cycles=[
             CycleRecord(index=0, occupancy=occ, atoms=3, defects=0, n_slots=4, counts=counts,
-                        moves=np.array([[0, 1], [5, 2]], dtype=np.int32)),
+                        moves=np.array([[0, 1], [5, 2]], dtype=np.int32), pickups=3),
             CycleRecord(index=1, occupancy=occ, atoms=3, defects=0, counts=counts + 1),
         ],
     )
@@ -117,6 +117,7 @@ def test_run_file_keeps_counts_and_moved_atoms(tmp_path: Path) -> None:
         store.close()
     assert shot["cycles"][0]["moves"] == [[0, 1], [5, 2]] and shot["cycles"][0]["atoms_moved"] == 2
     assert shot["cycles"][1]["moves"] == []
+    assert [c["pickups"] for c in shot["cycles"]] == [3, 0]
     np.testing.assert_array_equal(shot["cycles"][1]["counts"], counts + 1)
     reopened = RunStore(tmp_path)
     try:

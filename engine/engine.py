@@ -258,7 +258,7 @@ class Engine:
             if gc_was_enabled:
                 gc.enable()
         record.duration_s = clock.now_s() - record.t_start_s
-        cycle_reports = self.lab.cycle_reports(n_cycles) if self.lab is not None else [{}] * n_cycles
+        cycle_reports = self.lab.cycle_reports(n_cycles) if self.lab is not None else [{} for _ in range(n_cycles)]
         for c in range(n_cycles):
             occ = p.history[c].copy()
             record.cycles.append(

@@ -114,7 +114,7 @@ class SimLab:
         for before, after in zip(bounds, bounds[1:], strict=False):
             lost = (getattr(after, f"lost_{cause}") - getattr(before, f"lost_{cause}") for cause in LOSS_CAUSES)
             reports.append({"lost_by_cause": dict(zip(LOSS_CAUSES, lost, strict=True))})
-        return reports + [{}] * (n_cycles - len(reports))
+        return reports + [{} for _ in range(n_cycles - len(reports))]  # one dict each: records own theirs
 
     def reseed(self, seed: int) -> None:
         """Restart the world's and the camera's random numbers from ``seed``, as ``build_sim_lab`` seeds them.

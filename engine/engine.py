@@ -17,10 +17,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from engine import move_model as mm
 from engine.config import SystemConfig
 from engine.devices import DeviceError, DeviceSet
 from engine.host import EngineCommands
 from engine.imaging import Detector, calibration_frames
+from engine.operations import Operations
 from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves, atoms_in_flight
 from engine.solvers import LossWeights, Planner, Solver, UnsolvableError
 from engine.streaming import Streamer
@@ -53,6 +55,35 @@ class Lab(Protocol):
     def shot_report(self, target: np.ndarray) -> dict[str, Any]:
         """After a shot: what the lab has to say about it (JSON-ready; ``target`` is the shot's ``bool[ny, nx]``)."""
         ...
+
+    def cycle_reports(self, n_cycles: int) -> list[dict[str, Any]]:
+        """After a shot: what the lab has to say about each of its ``n_cycles`` cycles (JSON-ready, one dict per
+        cycle), carried unread in ``CycleRecord.lab_report``. Asked once the shot is over, never during a cycle."""
+        ...
+
+
+def _slot_table(ops: Operations) -> tuple[np.ndarray, ...]:
+    """A copy of a plan's slots (kind, y sites and deltas, x sites and deltas): ~30 us for a 32x64 plan, so the
+    cycle keeps it and the pick-ups are counted after the shot, not before the next image."""
+    n = len(ops)
+    return tuple(a[:n].copy() for a in (ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta))
+
+
+def _pickups(slots: tuple[np.ndarray, ...], occupancy: np.ndarray, *, chain: bool) -> int:
+    """Atoms the plan takes into a tweezer (extracts and captures; an atom taken twice counts twice): its slots
+    played through the move model (losses off, no atom identities) from the detected ``occupancy``. The
+    validator's replay counts the same but checks every slot's grammar in Python, ~35 ms for a 32x64 plan, longer
+    than the plan plays; this is the numba kernel alone."""
+    kind, y_site, y_delta, x_site, x_delta = slots
+    state = mm.MoveState(*occupancy.shape)
+    state.load(occupancy)
+    events = mm.new_events()
+    mm.replay_operations(
+        kind, y_site, y_delta, x_site, x_delta, 0, len(kind), chain,
+        state.static, state.held, state.held_mark, state.ids, state.atom_stats, False, state.arrivals,
+        state.tweezers, state.chain_scratch, state.y_tracks, state.x_tracks, events, False, False,
+    )  # fmt: skip
+    return int(events[mm.EV_PICKED] + events[mm.EV_CAPTURED])
 
 
 class ShotWatchdogExpired(RuntimeError):
@@ -94,6 +125,7 @@ class _Pipeline:
     timer: StageTimer
     counts_history: np.ndarray  # float32[max_cycles + 1, n_traps]: each cycle's PSF-weighted counts
     steps_history: list[np.ndarray | None]  # each cycle's plan steps, copied once its playback has started
+    slots_history: list[tuple[np.ndarray, ...] | None]  # each cycle's plan slots, for the pick-ups after the shot
     in_flight_history: list[list[list[list[int]]]]  # per cycle, per underrun: the atoms its failsafe held
 
 
@@ -140,6 +172,7 @@ class Engine:
             timer=StageTimer(dev.clock.now_s, config.loop.max_cycles + 1, charge=getattr(dev.clock, "charge", None)),
             counts_history=np.zeros((config.loop.max_cycles + 1, arr.n_traps), dtype=np.float32),
             steps_history=[None] * (config.loop.max_cycles + 1),
+            slots_history=[None] * (config.loop.max_cycles + 1),
             in_flight_history=[[] for _ in range(config.loop.max_cycles + 1)],
         )
         pipeline.solver.check_target(target)
@@ -204,10 +237,11 @@ class Engine:
             self.lab.prepare_shot()
         p.timer.reset()
         p.steps_history[:] = [None] * len(p.steps_history)
+        p.slots_history[:] = [None] * len(p.slots_history)
         p.in_flight_history[:] = [[] for _ in p.in_flight_history]
         latencies = np.zeros(p.config.loop.max_cycles + 1)
         cycle_times = np.zeros((p.config.loop.max_cycles + 1, 2))  # cycle began, image in memory (clock s)
-        plan_stats = np.zeros((p.config.loop.max_cycles + 1, 3), dtype=np.int64)  # slots, steps, underruns
+        plan_stats = np.zeros((p.config.loop.max_cycles + 1, 4), dtype=np.int64)  # slots, steps, underruns, pick-ups
         planners = [""] * (p.config.loop.max_cycles + 1)  # the planner each cycle used (a strategy switches)
         n_cycles = 0
         gc_was_enabled = gc.isenabled()
@@ -237,6 +271,7 @@ class Engine:
             if gc_was_enabled:
                 gc.enable()
         record.duration_s = clock.now_s() - record.t_start_s
+        cycle_reports = self.lab.cycle_reports(n_cycles) if self.lab is not None else [{} for _ in range(n_cycles)]
         for c in range(n_cycles):
             occ = p.history[c].copy()
             record.cycles.append(
@@ -256,6 +291,10 @@ class Engine:
                     moves=atom_moves(steps) if (steps := p.steps_history[c]) is not None else None,
                     planner=planners[c],
                     in_flight=p.in_flight_history[c],
+                    pickups=_pickups(slots, occ, chain=p.config.array.trap_source == "aod")
+                    if (slots := p.slots_history[c]) is not None
+                    else 0,
+                    lab_report=cycle_reports[c],
                 )
             )
         if self.lab is not None:
@@ -324,8 +363,9 @@ class Engine:
         timer.lap("III.batch")
         report = p.streamer.stream(plan.operations, timer)
         latencies[cycle] = report.t_started_s - t_image
-        plan_stats[cycle] = (report.n_slots, plan.n_steps, report.underruns)
         p.steps_history[cycle] = plan.steps.copy()  # after playback started: off the latency path
+        p.slots_history[cycle] = _slot_table(plan.operations)  # pick-ups counted after the shot
+        plan_stats[cycle] = (report.n_slots, plan.n_steps, report.underruns, 0)
         planners[cycle] = plan.algorithm
         chain = p.config.array.trap_source == "aod"  # after playback ended: off the latency path
         p.in_flight_history[cycle] = [

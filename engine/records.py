@@ -95,6 +95,10 @@ class CycleRecord:
         """Atoms the cycle's plan moved (0 for a cycle without a plan)."""
         return 0 if self.moves is None else int(self.moves.shape[0])
     planner: str = ""  # the planner that made this cycle's plan ("" when the cycle planned nothing)
+    pickups: int = 0  # atoms the plan took into a tweezer (extracts and captures; an atom taken twice, twice)
+    # what the lab reported about this cycle (``engine.engine.Lab.cycle_reports``), carried unread; empty on
+    # hardware. The simulated lab reports the atoms its world lost, by cause (``SimLab.cycle_reports``).
+    lab_report: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -112,6 +116,8 @@ class CycleRecord:
             "atoms_moved": self.atoms_moved,
             "planner": self.planner,
             "in_flight": self.in_flight,
+            "pickups": self.pickups,
+            "truth": self.lab_report,  # the key the shot's lab report has always used
         }
 
 

@@ -345,14 +345,15 @@ class Dashboard:
                 height=120,
             )
             self.p_plan = gui.add_uplot(
-                data=(np.zeros(1),) * 4,
+                data=(np.zeros(1),) * 5,
                 series=(
                     {"label": "cycle"},
                     {"label": "slots", "stroke": views.COLOURS["ours"], "width": 1},
                     {"label": "atoms moved", "stroke": views.COLOURS["in_place"], "width": 1},
+                    {"label": "pick-ups", "stroke": views.COLOURS["spare"], "width": 1, "dash": [4, 3]},
                     {"label": "atoms lost", "stroke": views.COLOURS["missing"], "width": 1},
                 ),
-                title="Plan size and atoms lost, per rearrangement cycle",
+                title="Plan size, pick-ups and atoms lost, per rearrangement cycle",
                 scales={"x": {"time": False}},
                 height=140,
             )
@@ -706,8 +707,10 @@ class Dashboard:
         if a["shot_id"].size:
             values, hist = views.cycles_histogram(a["cycles"])
             self.p_cycles_hist.data = (values, hist)
-        if a["slots"].size:
-            self.p_plan.data = (np.arange(a["slots"].size, dtype=np.float64), a["slots"], a["atoms_moved"], a["lost"])
+        known = np.isfinite(a["pickups"])  # a cycle whose pick-ups are not known is left out: a NaN blanks the plot
+        if known.any():
+            cycle = np.arange(a["slots"].size, dtype=np.float64)
+            self.p_plan.data = tuple(v[known] for v in (cycle, a["slots"], a["atoms_moved"], a["pickups"], a["lost"]))
         self.h_assembly.content = views.assembly_html(report["assembly"])
 
     def _draw_history(self) -> None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import html
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -613,35 +613,63 @@ def worst_traps(values: np.ndarray, *, k: int = 3) -> list[tuple[int, float]]:
 # -- assembly ---------------------------------------------------------------------------------------------------
 
 
+def _rearranging_cycles(shots: Sequence[Mapping[str, Any]]) -> Iterator[tuple[Mapping[str, Any], ...]]:
+    """``(shot, cycle, next cycle)`` for every cycle that played a plan and was followed by an image."""
+    for shot in shots:
+        cycles = shot["cycles"]
+        for before, after in zip(cycles, cycles[1:], strict=False):
+            if before.get("n_slots", 0) > 0:
+                yield shot, before, after
+
+
 def assembly_series(shots: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
     """Assembly figures from shot dicts (``ShotRecord.to_dict()``), oldest first.
 
     Per shot: ``shot_id``, ``time_to_defect_free_ms`` (when the image showing the defect-free array was in
     memory, NaN for a shot that did not end defect-free), ``cycles`` (rearrangement cycles). Per rearrangement
     cycle: ``cycle_shot`` (its shot id), ``lost`` (atoms the next image is missing: atoms before minus after,
-    the observed loss of that cycle whatever its cause), ``slots``, ``steps`` and ``atoms_moved``."""
+    the observed loss of that cycle whatever its cause), ``slots``, ``steps``, ``atoms_moved`` and ``pickups``
+    (NaN where not known)."""
     ids, ttd, n_cycles = [], [], []
-    cycle_shot, lost, slots, steps, moved = [], [], [], [], []
     for shot in shots:
         cycles = shot["cycles"]
         ids.append(shot["shot_id"])
         ok = shot["outcome"] == "success" and cycles
         ttd.append(float(cycles[-1].get("t_image_ms", np.nan)) if ok else np.nan)
         n_cycles.append(sum(1 for c in cycles if c.get("n_slots", 0) > 0))
-        for before, after in zip(cycles, cycles[1:], strict=False):
-            if before.get("n_slots", 0) > 0:
-                cycle_shot.append(shot["shot_id"])
-                lost.append(int(before["atoms"]) - int(after["atoms"]))
-                slots.append(before["n_slots"])
-                steps.append(before.get("n_steps", 0))
-                moved.append(before.get("atoms_moved", 0))
+    cycle_shot, lost, slots, steps, moved, pickups = [], [], [], [], [], []
+    for shot, before, after in _rearranging_cycles(shots):
+        cycle_shot.append(shot["shot_id"])
+        lost.append(int(before["atoms"]) - int(after["atoms"]))
+        slots.append(before["n_slots"])
+        steps.append(before.get("n_steps", 0))
+        moved.append(before.get("atoms_moved", 0))
+        picked = before.get("pickups")
+        pickups.append(np.nan if picked is None else picked)
     f = np.float64
     return {
         "shot_id": np.array(ids, dtype=f), "time_to_defect_free_ms": np.array(ttd, dtype=f),
         "cycles": np.array(n_cycles, dtype=f), "cycle_shot": np.array(cycle_shot, dtype=f),
         "lost": np.array(lost, dtype=f), "slots": np.array(slots, dtype=f), "steps": np.array(steps, dtype=f),
-        "atoms_moved": np.array(moved, dtype=f),
+        "atoms_moved": np.array(moved, dtype=f), "pickups": np.array(pickups, dtype=f),
     }
+
+
+def losses_by_cause(shots: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
+    """Atoms the lab saw lost in each rearrangement cycle (the cycles of ``assembly_series``), per cause: from
+    the cycles' ``truth.lost_by_cause`` (the simulated world knows why atoms go; hardware does not, and then
+    this is empty). NaN for a cycle without a report."""
+    reports = [before.get("truth", {}).get("lost_by_cause") for _, before, _ in _rearranging_cycles(shots)]
+    causes = sorted({cause for report in reports if report for cause in report})
+    return {
+        cause: np.array([np.nan if not r else r.get(cause, 0) for r in reports], dtype=np.float64) for cause in causes
+    }
+
+
+def _nanmean(values: np.ndarray) -> float | None:
+    """The mean of the known (finite) values; None where there are none."""
+    known = values[np.isfinite(values)]
+    return float(known.mean()) if known.size else None
 
 
 def cycles_histogram(cycles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -746,6 +774,10 @@ def stats_report(
             "atoms_moved_per_cycle_mean": (
                 float(assembly["atoms_moved"].mean()) if assembly["atoms_moved"].size else None
             ),
+            "pickups_per_cycle_mean": _nanmean(assembly["pickups"]),
+            "lost_by_cause_per_cycle_mean": {
+                cause: mean for cause, lost in losses_by_cause(shots).items() if (mean := _nanmean(lost)) is not None
+            },
         },
     }
 
@@ -791,7 +823,23 @@ def assembly_html(assembly: Mapping[str, Any]) -> str:
         f"defect-free array {num(assembly['time_to_defect_free_ms_median'], '.1f')} ms · per rearrangement "
         f"cycle: {num(assembly['slots_per_cycle_mean'], '.1f')} slots, "
         f"{num(assembly['atoms_moved_per_cycle_mean'], '.1f')} atoms moved, "
-        f"{num(assembly['lost_per_cycle_mean'], '.2f')} atoms lost (seen missing in the next image)</div>"
+        f"{num(assembly.get('pickups_per_cycle_mean'), '.1f')} pick-ups, "
+        f"{num(assembly['lost_per_cycle_mean'], '.2f')} atoms lost (seen missing in the next image)"
+        f"{_losses_table(assembly.get('lost_by_cause_per_cycle_mean') or {})}</div>"
+    )
+
+
+def _losses_table(lost_by_cause: Mapping[str, float]) -> str:
+    """The lab's atoms lost per rearrangement cycle, by cause, as a small table (nothing on hardware)."""
+    if not lost_by_cause:
+        return ""
+    rows = "".join(
+        f'<tr data-cause="{html.escape(cause)}"><td>{html.escape(cause)}</td><td align="right">{mean:.3f}</td></tr>'
+        for cause, mean in sorted(lost_by_cause.items(), key=lambda item: -item[1])
+    )
+    return (
+        '<table id="lost-by-cause" style="font-size:12px"><tr><th align="left">lost by cause (lab)</th>'
+        f"<th>atoms per cycle</th></tr>{rows}</table>"
     )
 
 

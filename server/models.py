@@ -96,6 +96,12 @@ class CycleOut(BaseModel):
     latency_us: float
     atoms_moved: int = Field(0, description="atoms the cycle's plan moved")
     planner: str = Field(default="", description="the planner that made this cycle's plan; empty: none planned")
+    pickups: int = Field(default=0, description="atoms the cycle's plan took into a tweezer (extracts and captures)")
+    truth: dict[str, Any] = Field(
+        default_factory=dict,
+        description="the simulated lab's report on this cycle: lost_by_cause, atoms its world lost from this "
+        "cycle's image to the next, per cause; empty on hardware",
+    )
 
 
 class ShotOut(ShotSummary):

@@ -10,13 +10,13 @@ configuration, a one-shot override included, starts a new file, so each file's s
   ``stage_us`` ``f4[shot, cycle, stage]`` (NaN where a stage did not run), ``plan`` ``i4[shot, cycle, 3]``
   (slots, steps, underruns), ``latency_us`` ``f4[shot, cycle]``, ``counts`` ``f4[shot, cycle, trap]`` (each
   image's PSF-weighted sums, trap order row-major), ``atoms_moved`` ``i4[shot, cycle]``, ``planner``
-  ``S32[shot, cycle]`` (the planner each cycle used; empty: it planned nothing). Cycles past ``n_cycles`` are
-  zero.
+  ``S32[shot, cycle]`` (the planner each cycle used; empty: it planned nothing), ``pickups`` ``i4[shot, cycle]``
+  (atoms each plan took into a tweezer). Cycles past ``n_cycles`` are zero.
 - ``moves`` ``i4[row, 4]``: one row per atom a plan moved, ``(shot index in this file, cycle, source trap,
   destination trap)``, appended shot after shot.
 
-Files written before ``counts``, ``atoms_moved``, ``moves`` and ``planner`` existed lack them; the readers below
-cope.
+Files written before ``counts``, ``atoms_moved``, ``moves``, ``planner`` and ``pickups`` existed lack them; the
+readers below cope.
 
 Why it survives crashes: the file is written in HDF5's single-writer/multiple-reader (SWMR) mode. After the
 datasets are created no new object is ever added; a shot only extends chunked datasets, and each dataset is
@@ -97,6 +97,7 @@ class _RunFile:
             ("counts", (c, arr.n_traps), "f4"),
             ("atoms_moved", (c,), "i4"),
             ("planner", (c,), "S32"),  # the planner each cycle used (a strategy switches; empty: none)
+            ("pickups", (c,), "i4"),
         ):
             rows = max(1, min(chunk, (1 << 20) // max(1, int(np.prod(tail)))))
             self.ds[name] = f.create_dataset(
@@ -115,6 +116,7 @@ class _RunFile:
         atoms_moved = np.zeros(c, dtype=np.int32)
         moves = []
         planner = np.zeros(c, dtype="S32")
+        pickups = np.zeros(c, dtype=np.int32)
         for cyc in record.cycles[:c]:
             occupancy[cyc.index] = cyc.occupancy
             for stage, seconds in cyc.stage_s.items():
@@ -130,6 +132,7 @@ class _RunFile:
                 rows[:, 0], rows[:, 1], rows[:, 2:] = self.n, cyc.index, cyc.moves
                 moves.append(rows)
             planner[cyc.index] = cyc.planner.encode()[:32]
+            pickups[cyc.index] = cyc.pickups
         filled = record.lab_report.get("target_filled")
         values = {
             "shot_id": record.shot_id,
@@ -145,6 +148,7 @@ class _RunFile:
             "counts": counts,
             "atoms_moved": atoms_moved,
             "planner": planner,
+            "pickups": pickups,
         }
         i = self.n
         for name, value in values.items():
@@ -196,6 +200,7 @@ def read_run_shot(f: h5py.File, index: int) -> dict[str, Any]:
     plan = f["plan"][index]
     latency = f["latency_us"][index]
     counts = f["counts"][index] if "counts" in f else None
+    pickups = f["pickups"][index] if "pickups" in f else None
     moves_of: dict[int, list[list[int]]] = {}
     if "moves" in f and f["moves"].shape[0]:
         rows = f["moves"][:]
@@ -216,6 +221,7 @@ def read_run_shot(f: h5py.File, index: int) -> dict[str, Any]:
             "underruns": int(plan[c, 2]),
             "latency_us": float(latency[c]),
             "atoms_moved": len(moves_of.get(c, [])),
+            "pickups": None if pickups is None else int(pickups[c]),
             "moves": moves_of.get(c, []),
             "counts": None if counts is None else [float(v) for v in counts[c]],
         })

@@ -115,6 +115,11 @@ class FakeEngine:
                     stage_s={"I.acquire": 30e-3, "II.detect": 20e-6, "III.solve": 5e-6 if rearranges else 0.0},
                     n_slots=3 if rearranges else 0,
                     n_steps=1 if rearranges else 0,
+                    pickups=1 if rearranges else 0,
+                    # the atoms that do not fit the target are let go (the fake's only loss)
+                    lab_report={"lost_by_cause": {"released": int(occ.sum() - states[i + 1].sum())}}
+                    if rearranges
+                    else {},
                 )
             )
         if self.keep_images:

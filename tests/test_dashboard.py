@@ -80,6 +80,10 @@ def test_physicist_tabs_show_maps_assembly_and_a_recorded_shot(dash: tuple[Dashb
     assert dashboard.h_traps.content.count("<rect") == ny * nx
     wait_until(lambda: 'data-shots="3"' in dashboard.h_assembly.content, what="the assembly panel")
     assert len(dashboard.p_cycles_hist.data[0]) >= 1
+    assert any(r.cycles[0].n_slots for r in records)  # (the fake lab's seeded loading: shots rearrange)
+    assert "pick-ups" in dashboard.h_assembly.content
+    assert 'data-cause="released"' in dashboard.h_assembly.content  # the loss-by-cause table
+    assert dashboard.p_plan.data[3].size >= 1  # the pick-ups series
     service.run_store.flush()  # type: ignore[union-attr]
     dashboard._list_runs()
     dashboard.d_run.value = dashboard.d_run.options[0]

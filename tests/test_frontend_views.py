@@ -217,9 +217,41 @@ def test_assembly_series_from_shots() -> None:
     np.testing.assert_array_equal(a["slots"], [12, 3])
     np.testing.assert_array_equal(a["atoms_moved"], [5, 1])
     np.testing.assert_array_equal(a["cycle_shot"], [4, 4])
+    np.testing.assert_array_equal(a["pickups"], [np.nan, np.nan])  # shots recorded before pick-ups were counted
     values, hist = views.cycles_histogram(a["cycles"])
     np.testing.assert_array_equal(values, [0, 1, 2])
     np.testing.assert_array_equal(hist, [1, 0, 1])
+
+
+def test_losses_by_cause_and_pickups_per_rearrangement_cycle() -> None:
+    """The lab's per-cycle report, aligned with the rearrangement cycles; a cycle without one (hardware) is NaN
+    and leaves the means alone."""
+    shots = [
+        {"shot_id": 1, "outcome": "success", "cycles": [
+            {"atoms": 10, "n_slots": 5, "pickups": 6, "truth": {"lost_by_cause": {"transfer": 2, "vacuum": 1}}},
+            {"atoms": 7, "n_slots": 2, "pickups": 1, "truth": {"lost_by_cause": {"transfer": 0, "imaging": 1}}},
+            {"atoms": 6, "n_slots": 0, "pickups": 0, "truth": {"lost_by_cause": {"imaging": 5}}}]},
+        {"shot_id": 2, "outcome": "success", "cycles": [
+            {"atoms": 9, "n_slots": 4, "pickups": None}, {"atoms": 9, "n_slots": 0}]},
+    ]
+    lost = views.losses_by_cause(shots)
+    assert sorted(lost) == ["imaging", "transfer", "vacuum"]  # the last cycle planned nothing: not counted
+    np.testing.assert_array_equal(lost["transfer"], [2, 0, np.nan])
+    np.testing.assert_array_equal(lost["vacuum"], [1, 0, np.nan])
+    np.testing.assert_array_equal(lost["imaging"], [0, 1, np.nan])
+    np.testing.assert_array_equal(views.assembly_series(shots)["pickups"], [6, 1, np.nan])
+    assembly = views.stats_report(
+        None, shape=(2, 5), config_digest="d", threshold=None, candidate=None, shots=shots
+    )["assembly"]
+    assert assembly["pickups_per_cycle_mean"] == 3.5
+    assert assembly["lost_by_cause_per_cycle_mean"] == {"transfer": 1.0, "vacuum": 0.5, "imaging": 0.5}
+    html_text = views.assembly_html({
+        "shots": 2, "success_rate": 1.0, "time_to_defect_free_ms_median": None, "lost_per_cycle_mean": 1.0,
+        "slots_per_cycle_mean": 3.7, "atoms_moved_per_cycle_mean": 2.0, "pickups_per_cycle_mean": 3.5,
+        "lost_by_cause_per_cycle_mean": {"transfer": 1.0, "vacuum": 0.5, "imaging": 0.5},
+    })
+    assert "3.5 pick-ups" in html_text
+    assert html_text.index('data-cause="transfer"') < html_text.index('data-cause="vacuum"')  # biggest first
 
 
 def test_plan_svg_draws_an_arrow_per_moved_atom() -> None:

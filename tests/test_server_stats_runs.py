@@ -53,6 +53,14 @@ def test_stats_follow_the_shots_and_reset_needs_the_token(lab: LabService, clien
     np.testing.assert_allclose(loading, expected)
     assert stats["assembly"]["shots"] == 4
     assert sum(stats["assembly"]["cycles_histogram"]) == 4
+    planned = [c for r in records for c in r.cycles if c.n_slots > 0]
+    assert planned  # (the fake lab's seeded loading: every shot rearranges)
+    # the fake lab lets go of the atoms the target has no room for: its one loss, per cycle
+    lost = [c.lab_report["lost_by_cause"]["released"] for c in planned]
+    assert stats["assembly"]["lost_by_cause_per_cycle_mean"] == {"released": pytest.approx(np.mean(lost))}
+    assert stats["assembly"]["pickups_per_cycle_mean"] == pytest.approx(np.mean([c.pickups for c in planned]))
+    shot = client.get(f"/api/shots/{records[-1].shot_id}").json()
+    assert all("pickups" in c and "truth" in c for c in shot["cycles"])
     assert client.post("/api/stats/reset").status_code == 401
     assert client.post("/api/stats/reset", headers=AUTH).json()["config_digest"] == lab.config.digest()
     assert client.get("/api/stats").json()["shots"] == 0
@@ -96,7 +104,7 @@ def test_run_file_keeps_counts_and_moved_atoms(tmp_path: Path) -> None:
         outcome=Outcome.SUCCESS,
         cycles=[
             CycleRecord(index=0, occupancy=occ, atoms=3, defects=0, n_slots=4, counts=counts,
-                        moves=np.array([[0, 1], [5, 2]], dtype=np.int32)),
+                        moves=np.array([[0, 1], [5, 2]], dtype=np.int32), pickups=3),
             CycleRecord(index=1, occupancy=occ, atoms=3, defects=0, counts=counts + 1),
         ],
     )
@@ -109,6 +117,7 @@ def test_run_file_keeps_counts_and_moved_atoms(tmp_path: Path) -> None:
         store.close()
     assert shot["cycles"][0]["moves"] == [[0, 1], [5, 2]] and shot["cycles"][0]["atoms_moved"] == 2
     assert shot["cycles"][1]["moves"] == []
+    assert [c["pickups"] for c in shot["cycles"]] == [3, 0]
     np.testing.assert_array_equal(shot["cycles"][1]["counts"], counts + 1)
     reopened = RunStore(tmp_path)
     try:

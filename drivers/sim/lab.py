@@ -8,6 +8,7 @@ samples it plays.
 
 from __future__ import annotations
 
+from dataclasses import fields, replace
 from typing import Any
 
 import numpy as np
@@ -15,14 +16,17 @@ import numpy as np
 from drivers.sim.awg import SimAWG
 from drivers.sim.camera import SimCamera
 from drivers.sim.clock import SimClock
-from drivers.sim.world import World
+from drivers.sim.world import World, WorldCounters
 from engine.config import FaultConfig, SystemConfig
 from engine.devices import DeviceSet
 from engine.operations import Plan
 from engine.records import occupancy_to_rows
 from engine.solvers import Planner
 
-__all__ = ["InjectedSolverFault", "SimLab", "build_sim_lab"]
+__all__ = ["LOSS_CAUSES", "InjectedSolverFault", "SimLab", "build_sim_lab"]
+
+# the world's loss counters (``WorldCounters.lost_*``), named by their cause: the keys of ``lost_by_cause``
+LOSS_CAUSES = tuple(f.name.removeprefix("lost_") for f in fields(WorldCounters) if f.name.startswith("lost_"))
 
 
 class InjectedSolverFault(Exception):
@@ -54,6 +58,8 @@ class SimLab:
         self.awg = awg
         self.camera = camera
         self.faults = FaultConfig()
+        # the world's counters just before each exposure of this shot: the bounds of its cycles' losses
+        self._counters_at_exposure: list[WorldCounters] = []
 
     def configure(self, config: SystemConfig) -> None:
         """Adopt a configuration the engine is applying: array, tones, loss model and injected faults."""
@@ -73,6 +79,15 @@ class SimLab:
         self._arm(self.faults)
         self.awg.sync()
         self.world.load()
+        self._counters_at_exposure.clear()
+
+    def expose(self, t0_s: float, exposure_s: float) -> np.ndarray:
+        """The camera's view of the world: the AWG's playback applied up to now, then the exposure (which may
+        lose atoms to imaging). The world's counters are noted first, so each cycle's losses run from its image
+        to the next."""
+        self.awg.sync()
+        self._counters_at_exposure.append(replace(self.world.counters))
+        return self.world.expose(t0_s, exposure_s)
 
     def planner(self, planner: Planner, config: SystemConfig) -> Planner:
         """The engine's planner, or one that fails every solve when ``config.sim.faults.solver`` injects it."""
@@ -88,6 +103,18 @@ class SimLab:
         the success the engine could only judge from its images."""
         truth = self.ground_truth()
         return {"occupancy_rows": occupancy_to_rows(truth), "target_filled": bool(np.all(truth[target]))}
+
+    def cycle_reports(self, n_cycles: int) -> list[dict[str, Any]]:
+        """After a shot, one report per cycle: ``lost_by_cause``, the atoms the world lost from the cycle's image
+        (its exposure included) to the next image, or to the end of the shot for the last cycle, per cause
+        (``LOSS_CAUSES``). A cycle that took no image (a camera fault) reports nothing."""
+        self.awg.sync()
+        bounds = [*self._counters_at_exposure[:n_cycles], self.world.counters]
+        reports: list[dict[str, Any]] = []
+        for before, after in zip(bounds, bounds[1:], strict=False):
+            lost = (getattr(after, f"lost_{cause}") - getattr(before, f"lost_{cause}") for cause in LOSS_CAUSES)
+            reports.append({"lost_by_cause": dict(zip(LOSS_CAUSES, lost, strict=True))})
+        return reports + [{} for _ in range(n_cycles - len(reports))]  # one dict each: records own theirs
 
     def reseed(self, seed: int) -> None:
         """Restart the world's and the camera's random numbers from ``seed``, as ``build_sim_lab`` seeds them.
@@ -115,8 +142,7 @@ def build_sim_lab(config: SystemConfig) -> tuple[DeviceSet, SimLab]:
     awg = SimAWG(world, clock, config, rng=awg_rng)
 
     def exposure(t0_s: float, exposure_s: float) -> np.ndarray:
-        awg.sync()
-        return world.expose(t0_s, exposure_s)
+        return lab.expose(t0_s, exposure_s)  # the lab is built below, before the camera exposes
 
     camera = SimCamera(config, atoms=exposure, clock=clock, rng=camera_rng)
     lab = SimLab(world, awg, camera)

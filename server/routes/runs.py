@@ -47,6 +47,7 @@ class RunCycleOut(BaseModel):
     underruns: int
     latency_us: float
     atoms_moved: int
+    pickups: int | None = Field(default=None, description="atoms the plan took into a tweezer (null: not recorded)")
     moves: list[list[int]] = Field(description="[source, destination] trap index of every atom the plan moved")
     counts: list[float] | None = Field(description="the image's PSF-weighted sums per trap (null: not recorded)")
 

@@ -60,6 +60,14 @@ class AssemblyOut(BaseModel):
     lost_per_cycle_mean: float | None = Field(description="atoms the next image misses, per rearrangement cycle")
     slots_per_cycle_mean: float | None
     atoms_moved_per_cycle_mean: float | None
+    pickups_per_cycle_mean: float | None = Field(
+        default=None, description="atoms taken into a tweezer (extracts and captures) per rearrangement cycle"
+    )
+    lost_by_cause_per_cycle_mean: dict[str, float] = Field(
+        default_factory=dict,
+        description="atoms the lab saw lost per rearrangement cycle, by cause (from image to next image; the "
+        "simulated world knows the cause, hardware does not: empty there)",
+    )
 
 
 class StatsOut(BaseModel):

@@ -10,7 +10,7 @@ import pytest
 
 from drivers.sim.lab import LOSS_CAUSES, SimLab, build_sim_lab
 from engine.config import load_config
-from engine.engine import Engine, _pickups, _solver
+from engine.engine import Engine, _pickups, _slot_table, _solver
 from engine.solvers.validate import replay
 from engine.targets import build_target
 from server.models import shot_out
@@ -97,4 +97,4 @@ def test_pickups_match_the_validators_replay() -> None:
         plan = solver.batch()
         expected = int(replay(plan.operations, occupancy, trap_source="slm").atom_pickups.sum())
         assert expected > 0
-        assert _pickups(plan, occupancy, chain=False) == expected
+        assert _pickups(_slot_table(plan.operations), occupancy, chain=False) == expected

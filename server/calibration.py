@@ -3,10 +3,17 @@ express the result as a configuration change, so that applying it is an ordinary
 update and every later shot's run file holds the calibration it used.
 
 The fits themselves are the engine's (``engine.imaging_calibration``); this module only prepares their input
-from frames and compares the result with what is in use now, on the same frames.
+from frames and compares the result with what is in use now, on the same frames. ``CalibrationBook`` holds
+the fitted results under ids until a person applies one (the lab service composes it).
 """
 
 from __future__ import annotations
+
+import itertools
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -15,7 +22,37 @@ from engine.imaging import weighted_sums_reference
 from engine.imaging_calibration import Population, calibrate_threshold, error_probability, fit_psf
 from engine.psf import PsfModel, psf_from_config
 
-__all__ = ["psf_calibration", "threshold_calibration", "weighted_sums"]
+__all__ = [
+    "MAX_CALIBRATION_BYTES",
+    "CalibrationBook",
+    "CalibrationConflict",
+    "CalibrationFailed",
+    "UnknownCalibration",
+    "fitted",
+    "frame_budget_problem",
+    "psf_calibration",
+    "threshold_calibration",
+    "weighted_sums",
+]
+
+#: Frames one calibration may acquire, in bytes of uint16 pixels (each process holds them, and the fits
+#: make float copies): 40 frames of a 1024 x 1024 ROI fit, 500 frames of 4096 x 4096 do not.
+MAX_CALIBRATION_BYTES = 128 * 2**20
+
+
+class CalibrationConflict(RuntimeError):
+    """A calibration cannot be applied: the configuration changed since its frames were taken."""
+
+
+class CalibrationFailed(RuntimeError):
+    """The calibration frames could not be fitted (e.g. no atoms were loaded in them)."""
+
+
+class UnknownCalibration(LookupError):
+    """No calibration with that id is held."""
+
+    def __str__(self) -> str:
+        return f"no calibration {self.args[0]!r}"
 
 
 def weighted_sums(images: np.ndarray, psf: PsfModel) -> np.ndarray:
@@ -136,3 +173,79 @@ def psf_calibration(images: np.ndarray, config: SystemConfig) -> dict:
         "current_fidelity": _fidelity(weighted_sums(images, nominal)),
         "apply_patch": patch,
     }
+
+
+def frame_budget_problem(images: int, config: SystemConfig) -> str | None:
+    """Why ``images`` frames of ``config``'s ROI are too many for one calibration (``None``: they are not)."""
+    frame_bytes = 2 * config.camera.roi_width_px * config.camera.roi_height_px
+    if images * frame_bytes <= MAX_CALIBRATION_BYTES:
+        return None
+    return (
+        f"{images} frames of {frame_bytes} bytes exceed {MAX_CALIBRATION_BYTES} bytes; "
+        f"ask for at most {MAX_CALIBRATION_BYTES // frame_bytes} frames with this ROI"
+    )
+
+
+def fitted(
+    kind: str, fit: Callable[[np.ndarray, SystemConfig], dict[str, Any]], frames: np.ndarray, config: SystemConfig
+) -> dict[str, Any]:
+    """``fit(frames, config)``; frames that cannot be fitted raise ``CalibrationFailed`` naming the ``kind``."""
+    try:
+        return fit(frames, config)
+    except ValueError as err:
+        raise CalibrationFailed(f"{kind} calibration failed: {err}") from None
+
+
+class CalibrationBook:
+    """The newest ``kept`` calibration results, each under an id with the digest of the configuration its
+    frames were taken under, and whether it has been applied. Callers get copies, never the held dicts."""
+
+    def __init__(self, kept: int = 32) -> None:
+        self._kept = kept
+        self._lock = threading.Lock()
+        self._held: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        self._ids = itertools.count(1)
+
+    def keep(self, result: dict[str, Any], config: SystemConfig) -> dict[str, Any]:
+        """Hold a fit's ``result`` (taken under ``config``), not applied, under a new id ``<kind>-<n>``."""
+        result = {
+            "id": f"{result['kind']}-{next(self._ids)}",
+            "config_digest": config.digest(),
+            "applied": False,
+            **result,
+        }
+        with self._lock:
+            self._held[result["id"]] = result
+            while len(self._held) > self._kept:
+                self._held.popitem(last=False)
+            return dict(result)
+
+    def all(self) -> list[dict[str, Any]]:
+        """Calibrations held (newest last)."""
+        with self._lock:
+            return [dict(c) for c in self._held.values()]
+
+    def to_apply(self, calibration_id: str, running_digest: str) -> dict[str, Any]:
+        """The held calibration ``calibration_id``, checked for applying under the configuration whose digest
+        is ``running_digest`` (one already applied is returned as it is).
+
+        ``UnknownCalibration``: no such id. ``CalibrationConflict``: its frames were taken under another
+        configuration."""
+        with self._lock:
+            cal = self._held.get(calibration_id)
+            if cal is None:
+                raise UnknownCalibration(calibration_id)
+            cal = dict(cal)
+        if not cal["applied"] and cal["config_digest"] != running_digest:
+            raise CalibrationConflict(
+                f"calibration {calibration_id} was fitted under configuration {cal['config_digest']}, "
+                f"but {running_digest} is running now; calibrate again"
+            )
+        return cal
+
+    def mark_applied(self, calibration: dict[str, Any]) -> dict[str, Any]:
+        """Note that ``calibration`` (from ``to_apply``) is applied; returns it as now held."""
+        with self._lock:
+            held = self._held.get(calibration["id"], calibration)
+            held["applied"] = True
+            return dict(held)

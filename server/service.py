@@ -17,15 +17,17 @@ until a person starts shots again).
 Calibration acquires fresh frames through the engine, fits a threshold or a PSF (``server.calibration``) and
 keeps the result under an id without applying it; ``apply_calibration(id)`` turns it into an ordinary config
 change, refused if the configuration changed since the frames were taken.
+
+The service composes its parts from modules beside it: ``server.shot_history`` (the held shots),
+``server.calibration`` (the fits and the ``CalibrationBook``), ``server.config_input`` (strict validation of a
+client's configuration and the tone files it names) and ``server.no_engine`` (the stand-in while devices are down).
 """
 
 from __future__ import annotations
 
 import itertools
-import json
 import sys
 import threading
-from collections import OrderedDict, deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
@@ -34,17 +36,28 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import ValidationError
 
 from engine.config import SystemConfig, deep_merge
-from engine.host import EngineCommands, EngineHost
+from engine.host import EngineHost
 from engine.process import EngineProcessDied
 from engine.records import Outcome, ShotRecord
 from engine.trap_stats import StatsBook
-from server.calibration import psf_calibration, threshold_calibration
-from server.files import confine, open_regular
+from server.calibration import (
+    CalibrationBook,
+    CalibrationConflict,
+    CalibrationFailed,
+    UnknownCalibration,
+    fitted,
+    frame_budget_problem,
+    psf_calibration,
+    threshold_calibration,
+)
+from server.config_input import ConfigRejected, checked_tone_files, validate_strict
+from server.files import confine
 from server.models import DevicesOut, StatusOut, shot_summary
+from server.no_engine import DevicesUnavailable, NoEngine, devices_reason
 from server.runstore import RunStore
+from server.shot_history import ShotHistory
 
 __all__ = [
     "CalibrationConflict",
@@ -66,92 +79,12 @@ SWITCH_INTERVAL_S = 2e-4
 #: request must not wait for minutes and then act long after its client gave up.
 COMMAND_WAIT_S = 30.0
 
-#: A tone CSV holds one short ``alpha,nu,phi`` line per trap (at most 1024 per axis: about 50 kB).
-MAX_TONE_FILE_BYTES = 256 * 2**10
-
-#: Frames one calibration may acquire, in bytes of uint16 pixels (each process holds them, and the fits
-#: make float copies): 40 frames of a 1024 x 1024 ROI fit, 500 frames of 4096 x 4096 do not.
-MAX_CALIBRATION_BYTES = 128 * 2**20
-
-
-def _devices_reason(err: BaseException) -> str:
-    return (
-        f"the devices could not be opened ({type(err).__name__}: {err}); the server keeps serving: fix `devices` "
-        "in the configuration (PUT or PATCH /api/config), or check them with `llrs devices`"
-    )
-
-
-class ConfigRejected(ValueError):
-    """A configuration the service refused; ``errors`` say where and why (FastAPI's error shape)."""
-
-    def __init__(self, errors: list[dict[str, Any]]) -> None:
-        super().__init__("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors))
-        self.errors = errors
-
-
 class NotArmed(RuntimeError):
     """A trigger arrived while the server was not armed (or an arm the devices cannot honour)."""
 
 
-class DevicesUnavailable(RuntimeError):
-    """The configured devices could not be opened: the server keeps serving (status, config, history) and
-    runs no shot until a configuration whose devices open is applied."""
-
-
-class _NoEngine(EngineCommands):
-    """An ``EngineHost`` that stands in for the engine while the devices cannot be opened (or its process
-    died): every command says why."""
-
-    config = None
-    has_trigger_input = False
-    alive = False
-    shares_interpreter = False
-
-    def __init__(self, reason: str) -> None:
-        self.exit_reason = reason
-
-    def start(self) -> _NoEngine:
-        raise DevicesUnavailable(self.exit_reason)
-
-    def submit(self, command: Callable[[Any], Any]) -> Future[Any]:
-        future: Future[Any] = Future()
-        future.set_exception(DevicesUnavailable(self.exit_reason))
-        return future
-
-    def close(self, *, timeout_s: float = 10.0) -> None:
-        pass
-
-
 class EngineBusy(RuntimeError):
     """The engine stayed busy (a shot, a calibration) for longer than a command may wait; nothing was done."""
-
-
-class CalibrationConflict(RuntimeError):
-    """A calibration cannot be applied: the configuration changed since its frames were taken."""
-
-
-class CalibrationFailed(RuntimeError):
-    """The calibration frames could not be fitted (e.g. no atoms were loaded in them)."""
-
-
-class UnknownCalibration(LookupError):
-    """No calibration with that id is held."""
-
-    def __str__(self) -> str:
-        return f"no calibration {self.args[0]!r}"
-
-
-def _validate(data: Any) -> SystemConfig:
-    """Validate JSON-shaped ``data`` strictly: ``"lossless": 0`` or ``"max_cycles": "5"`` are refused, not coerced
-    (a lab config is typed by a person; a silent coercion would hide a typo)."""
-    try:
-        return SystemConfig.model_validate_json(json.dumps(data, allow_nan=False), strict=True)
-    except ValueError as err:
-        if not isinstance(err, ValidationError):  # NaN or infinity somewhere
-            raise ConfigRejected([{"loc": ["body"], "msg": f"not valid JSON: {err}", "type": "json_invalid"}]) from None
-        raise ConfigRejected(
-            [{"loc": ["body", *e["loc"]], "msg": e["msg"], "type": e["type"]} for e in err.errors()]
-        ) from None
 
 
 class LabService:
@@ -187,21 +120,12 @@ class LabService:
         self._shot_limit_s: float | None = None  # see _learn_shot_limit
         self._lock = threading.Lock()  # serializes commands to the engine
         self._state_lock = threading.Lock()  # guards the fields below
-        self._history: deque[ShotRecord] = deque(maxlen=history)
-        self._by_id: dict[int, ShotRecord] = {}
-        self._latest_with_counts: ShotRecord | None = None
-        self._shots = 0
-        self._successes = 0
-        self._truth_successes: int | None = None
+        self._history = ShotHistory(history)
         self._fault: str | None = None
         self._activity: list[str] = []
         self._armed = False
         self._armed_shots_left: int | None = None
-        self._last_frame: tuple[int, np.ndarray] | None = None
-        self._final_frames: OrderedDict[int, np.ndarray] = OrderedDict()  # shot_id -> its last cycle's frame
-        self.final_frames_kept = 32
-        self._calibrations: OrderedDict[str, dict[str, Any]] = OrderedDict()
-        self._calibration_ids = itertools.count(1)
+        self._calibrations = CalibrationBook()
         self._listeners: list[Callable[[ShotRecord], None]] = []
         self.trap_stats = StatsBook()  # per-trap statistics per configuration (GET /api/stats, the dashboard)
         self._want_run = threading.Event()
@@ -225,7 +149,7 @@ class LabService:
         except Exception as err:
             if self._factory is None or self._initial_config is None:
                 raise
-            self._et = _NoEngine(_devices_reason(err))
+            self._et = NoEngine(devices_reason(err))
             self._config = self._initial_config
             self._fault = self._et.exit_reason
         else:
@@ -269,7 +193,8 @@ class LabService:
 
     def replace_config(self, config: SystemConfig | dict[str, Any]) -> SystemConfig:
         """Validate and apply a whole configuration between shots; on any error the running one stays."""
-        new = self._checked_files(config if isinstance(config, SystemConfig) else _validate(config))
+        new = config if isinstance(config, SystemConfig) else validate_strict(config)
+        new = checked_tone_files(new, self._config, self.tone_dir)
         with self._engine_turn():
             self._apply(new)
         return new
@@ -277,7 +202,8 @@ class LabService:
     def patch_config(self, patch: dict[str, Any]) -> SystemConfig:
         """Deep-merge ``patch`` into the running configuration, validate, apply (see ``replace_config``)."""
         with self._engine_turn():
-            new = self._checked_files(_validate(deep_merge(self.config.model_dump(mode="json"), patch)))
+            new = validate_strict(deep_merge(self.config.model_dump(mode="json"), patch))
+            new = checked_tone_files(new, self._config, self.tone_dir)
             self._apply(new)
         return new
 
@@ -354,7 +280,8 @@ class LabService:
             if not override:
                 return self._one_shot("one shot")
             base = self.config
-            special = self._checked_files(_validate(deep_merge(base.model_dump(mode="json"), override)))
+            special = validate_strict(deep_merge(base.model_dump(mode="json"), override))
+            special = checked_tone_files(special, self._config, self.tone_dir)
             if special.devices != base.devices:
                 raise ConfigRejected(
                     [{"loc": ["body", "config", "devices"], "type": "override_devices",
@@ -399,28 +326,19 @@ class LabService:
     def _calibrate(
         self, kind: str, fit: Callable[[np.ndarray, SystemConfig], dict[str, Any]], images: int
     ) -> dict[str, Any]:
-        """Acquire ``images`` frames (at most ``MAX_CALIBRATION_BYTES`` of them) and fit; ``CalibrationFailed``
-        when the frames cannot be fitted."""
+        """Acquire ``images`` frames (at most ``server.calibration.MAX_CALIBRATION_BYTES`` of them) and fit;
+        ``CalibrationFailed`` when the frames cannot be fitted."""
         with self._engine_turn():
             config = self.config
-            frame_bytes = 2 * config.camera.roi_width_px * config.camera.roi_height_px
-            if images * frame_bytes > MAX_CALIBRATION_BYTES:
-                raise ConfigRejected(
-                    [{"loc": ["body", "images"], "type": "too_many_frames",
-                      "msg": f"{images} frames of {frame_bytes} bytes exceed {MAX_CALIBRATION_BYTES} bytes; "
-                      f"ask for at most {MAX_CALIBRATION_BYTES // frame_bytes} frames with this ROI"}]
-                )
+            problem = frame_budget_problem(images, config)
+            if problem is not None:
+                raise ConfigRejected([{"loc": ["body", "images"], "type": "too_many_frames", "msg": problem}])
             frames = self._acquire(images, f"calibrating the {kind} ({images} frames)")
-        try:
-            result = fit(frames, config)
-        except ValueError as err:
-            raise CalibrationFailed(f"{kind} calibration failed: {err}") from None
-        return self._keep_calibration(result, config)
+        return self._calibrations.keep(fitted(kind, fit, frames, config), config)
 
     def calibrations(self) -> list[dict[str, Any]]:
         """Calibrations held (newest last)."""
-        with self._state_lock:
-            return [dict(c) for c in self._calibrations.values()]
+        return self._calibrations.all()
 
     def apply_calibration(self, calibration_id: str) -> dict[str, Any]:
         """Put a calibration's values into the running configuration (applied between shots).
@@ -429,41 +347,27 @@ class LabService:
         taken (calibrate again). Applying one that is already applied changes nothing.
         """
         with self._engine_turn():
-            with self._state_lock:
-                cal = self._calibrations.get(calibration_id)
-                if cal is None:
-                    raise UnknownCalibration(calibration_id)
-                if cal["applied"]:
-                    return dict(cal)
-            if cal["config_digest"] != self.config.digest():
-                raise CalibrationConflict(
-                    f"calibration {calibration_id} was fitted under configuration {cal['config_digest']}, "
-                    f"but {self.config.digest()} is running now; calibrate again"
-                )
-            new = _validate(deep_merge(self.config.model_dump(mode="json"), cal["apply_patch"]))
-            self._apply(new)
-            with self._state_lock:
-                cal["applied"] = True
-                return dict(cal)
+            cal = self._calibrations.to_apply(calibration_id, self.config.digest())
+            if cal["applied"]:
+                return cal
+            self._apply(validate_strict(deep_merge(self.config.model_dump(mode="json"), cal["apply_patch"])))
+            return self._calibrations.mark_applied(cal)
 
     # -- queries ----------------------------------------------------------------------------------------------
 
     def shots(self, *, limit: int, offset: int) -> tuple[int, list[ShotRecord]]:
         """``(total held, records)`` newest first."""
-        with self._state_lock:
-            newest_first = list(reversed(self._history))
-        return len(newest_first), newest_first[offset : offset + limit]
+        return self._history.page(limit=limit, offset=offset)
 
     def get_shot(self, shot_id: int) -> ShotRecord | None:
-        with self._state_lock:
-            return self._by_id.get(shot_id)
+        return self._history.get(shot_id)
 
     def status(self) -> StatusOut:
         self._notice_dead_engine()
         cfg = self.config
+        last, shots, successes, truth = self._history.tallies()
         with self._state_lock:
-            last = self._history[-1] if self._history else None
-            shots, successes, truth, fault = self._shots, self._successes, self._truth_successes, self._fault
+            fault = self._fault
             activity = self._activity[-1] if self._activity else None
             armed = self._armed
         state: Literal["idle", "armed", "running", "fault"]
@@ -510,27 +414,26 @@ class LabService:
         return self._store
 
     def last_record(self) -> ShotRecord | None:
-        with self._state_lock:
-            return self._history[-1] if self._history else None
+        return self._history.last()
 
     def frame(self, shot_id: int, cycle: int) -> np.ndarray | None:
         """A camera frame of a held shot: any cycle's if the engine kept images with the record, else the last
         cycle's (the final image) for the most recent shots. ``None`` if not kept."""
-        with self._state_lock:
-            record = self._by_id.get(shot_id)
-            if record is None:
-                return None
-            if record.images is not None and cycle < len(record.images):
-                return record.images[cycle]
-            if cycle == len(record.cycles) - 1:
-                return self._final_frames.get(shot_id)
-            return None
+        return self._history.frame(shot_id, cycle)
 
     def last_frame(self) -> tuple[int, np.ndarray] | None:
         """``(shot_id, uint16[h, w])``: the last camera frame of the latest shot (the final state), if the engine
         offers it. The array is the service's own copy; do not modify it."""
-        with self._state_lock:
-            return self._last_frame
+        return self._history.last_frame()
+
+    @property
+    def final_frames_kept(self) -> int:
+        """How many of the newest shots keep their final camera frame."""
+        return self._history.final_frames_kept
+
+    @final_frames_kept.setter
+    def final_frames_kept(self, n: int) -> None:
+        self._history.final_frames_kept = n
 
     # -- internals --------------------------------------------------------------------------------------------
 
@@ -550,7 +453,7 @@ class LabService:
 
     def _require_engine(self) -> None:
         self._notice_dead_engine()
-        if isinstance(self._et, _NoEngine):
+        if isinstance(self._et, NoEngine):
             raise DevicesUnavailable(self._et.exit_reason or "no engine")
 
     def _wait(self, future: Future[Any], *, timeout_s: float | None = None) -> Any:
@@ -572,13 +475,13 @@ class LabService:
             raise DevicesUnavailable(self._et.exit_reason or "the engine process died") from None
 
     def _notice_dead_engine(self) -> None:
-        """An engine process that died becomes a ``_NoEngine`` with its reason: the server reports it and a
+        """An engine process that died becomes a ``NoEngine`` with its reason: the server reports it and a
         configuration applied later starts a new engine (``_apply`` re-opens)."""
-        if not isinstance(self._et, _NoEngine) and not self._et.alive:
+        if not isinstance(self._et, NoEngine) and not self._et.alive:
             reason = self._et.exit_reason or "the engine is gone"
             reason += "; apply a configuration (PUT /api/config) to start a new engine"
             self._et.close()
-            self._et = _NoEngine(reason)
+            self._et = NoEngine(reason)
             with self._state_lock:
                 self._fault = reason
 
@@ -590,7 +493,7 @@ class LabService:
     def _abandon_engine(self, reason: str) -> None:
         """Stop an engine that is stuck (its process is killed; a stuck thread is left behind)."""
         self._et.close(timeout_s=1.0)
-        self._et = _NoEngine(reason)
+        self._et = NoEngine(reason)
         with self._state_lock:
             self._fault = reason
 
@@ -602,35 +505,12 @@ class LabService:
             thread.start()
         except Exception as err:
             raise ConfigRejected(
-                [{"loc": ["body", "devices"], "msg": _devices_reason(err), "type": "devices_unavailable"}]
+                [{"loc": ["body", "devices"], "msg": devices_reason(err), "type": "devices_unavailable"}]
             ) from None
         old, self._et = self._et, thread
         old.close()
         with self._state_lock:
             self._fault = None
-
-    def _checked_files(self, config: SystemConfig) -> SystemConfig:
-        """``config`` with each tone CSV that differs from the running configuration's checked (inside
-        ``tone_dir``, a regular file, at most ``MAX_TONE_FILE_BYTES``) and named by its resolved path, so the
-        engine reads exactly the file checked here. A CSV already running was put there by the operator."""
-        running = self._config.array if self._config is not None else None
-        changes: dict[str, Any] = {}
-        for axis in ("x_tones", "y_tones"):
-            csv = getattr(config.array, axis).csv
-            if csv is None or (running is not None and csv == getattr(running, axis).csv):
-                continue
-            try:
-                path = confine(csv, self.tone_dir, what="tone file", option="--tone-dir")
-                open_regular(path, what="tone file", max_bytes=MAX_TONE_FILE_BYTES).close()
-            except (ValueError, FileNotFoundError) as err:
-                msg = str(err) if not isinstance(err, FileNotFoundError) else f"tone file {csv!r}: no such file"
-                raise ConfigRejected(
-                    [{"loc": ["body", "array", axis, "csv"], "msg": msg, "type": "file_refused"}]
-                ) from None
-            changes[axis] = getattr(config.array, axis).model_copy(update={"csv": str(path)})
-        if not changes:
-            return config
-        return config.model_copy(update={"array": config.array.model_copy(update=changes)})
 
     def _apply(self, config: SystemConfig, *, remember: bool = True) -> None:
         """Apply on the engine (between shots); raise ``ConfigRejected`` if the engine refuses it, for whatever
@@ -640,7 +520,7 @@ class LabService:
         devices on a new engine host; if they do not open, the running engine and config stay. The run store
         learns a configuration only once the engine runs it."""
         self._notice_dead_engine()
-        reopen = isinstance(self._et, _NoEngine) or (
+        reopen = isinstance(self._et, NoEngine) or (
             self._factory is not None and self._config is not None and config.devices != self._config.devices
         )
         if reopen and self._factory is not None:
@@ -688,19 +568,6 @@ class LabService:
             done()
         return np.asarray(frames)
 
-    def _keep_calibration(self, result: dict[str, Any], config: SystemConfig) -> dict[str, Any]:
-        result = {
-            "id": f"{result['kind']}-{next(self._calibration_ids)}",
-            "config_digest": config.digest(),
-            "applied": False,
-            **result,
-        }
-        with self._state_lock:
-            self._calibrations[result["id"]] = result
-            while len(self._calibrations) > 32:
-                self._calibrations.popitem(last=False)
-            return dict(result)
-
     def _one_shot(self, what: str) -> ShotRecord:
         """One shot on the engine, then the bookkeeping and the listeners on this (the caller's) thread."""
         done = self._busy(what)
@@ -712,22 +579,9 @@ class LabService:
         return record
 
     def _on_shot(self, record: ShotRecord, frame: np.ndarray | None = None) -> None:
+        self._history.add(record, frame)
         with self._state_lock:
-            if len(self._history) == self._history.maxlen:
-                self._by_id.pop(self._history[0].shot_id, None)
-            self._history.append(record)
-            self._by_id[record.shot_id] = record
-            self._shots += 1
-            self._successes += record.success
-            filled = record.lab_report.get("target_filled")
-            if filled is not None:
-                self._truth_successes = (self._truth_successes or 0) + bool(filled)
             self._fault = record.fault if record.outcome is Outcome.FAULT else None
-            if frame is not None:
-                self._last_frame = (record.shot_id, frame)
-                self._final_frames[record.shot_id] = frame
-                while len(self._final_frames) > self.final_frames_kept:
-                    self._final_frames.popitem(last=False)
         if self._store is not None:
             self._store.put(record)
         self.trap_stats.add(record)
@@ -736,15 +590,7 @@ class LabService:
                 listener(record)
             except Exception:  # a broken listener (a closed dashboard) must never stop the engine
                 pass
-        self._drop_counts_of_older_shots(record)
-
-    def _drop_counts_of_older_shots(self, latest: ShotRecord) -> None:
-        """Held records keep their per-trap counts only while they are the latest shot: the run file and the
-        trap statistics have them by then, and 2000 held shots of 8192 traps would otherwise hold ~200 MB."""
-        previous, self._latest_with_counts = self._latest_with_counts, latest
-        if previous is not None and previous is not latest:
-            for cycle in previous.cycles:
-                cycle.counts = None
+        self._history.drop_counts_of_older_shots(record)
 
     def _wait_hardware_trigger(self) -> bool:
         """Armed on a hardware trigger: wait a little for the line on the engine; True if it fired."""

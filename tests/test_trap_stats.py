@@ -115,17 +115,16 @@ def test_trap_survival_hook_checks_its_input(lossless_chain: SystemConfig) -> No
 
 def test_held_shots_keep_counts_only_while_latest() -> None:
     """2000 held shots of 8192 traps would hold ~200 MB of counts: the service keeps them on the latest only."""
-    from server.service import LabService
+    from server.shot_history import ShotHistory
 
-    service = LabService.__new__(LabService)  # only this bookkeeping is under test: no engine behind it
-    service._latest_with_counts = None
+    history = ShotHistory(2000)  # the service's held shots, which own this bookkeeping
     first, second = (
         ShotRecord(shot_id=i, config_digest="d", algorithm="a", target=np.zeros((1, 4), bool)) for i in range(2)
     )
     for record in (first, second):
         record.cycles.append(CycleRecord(index=0, occupancy=np.zeros((1, 4), bool), atoms=0, defects=0,
                                          counts=np.ones(4, np.float32)))  # fmt: skip
-    service._drop_counts_of_older_shots(first)
+    history.drop_counts_of_older_shots(first)
     assert first.cycles[0].counts is not None
-    service._drop_counts_of_older_shots(second)
+    history.drop_counts_of_older_shots(second)
     assert first.cycles[0].counts is None and second.cycles[0].counts is not None

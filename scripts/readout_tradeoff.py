@@ -16,8 +16,9 @@ import argparse
 
 import numpy as np
 
-from drivers.sim.camera import SimCamera, clock_induced_charge, predicted_sum_statistics, read_noise, readout_time
+from drivers.sim.camera import SimCamera, predicted_sum_statistics
 from drivers.sim.clock import SimClock
+from drivers.sim.readout import clock_induced_charge, read_noise, readout_time
 from engine.config import SystemConfig, load_config
 from engine.imaging import Detector, calibration_frames
 from engine.imaging_calibration import error_probability

@@ -184,7 +184,7 @@ def _awg_sequence(config: SystemConfig, devices: DeviceSet, out: list[CheckResul
 
 def _camera_sequence(config: SystemConfig, devices: DeviceSet, n_frames: int, out: list[CheckResult]) -> None:
     """Configure the camera at the configured region, acquire frames, compare readout with the model."""
-    from drivers.sim.camera import readout_time
+    from drivers.sim.readout import readout_time
 
     camera, awg, cam = devices.camera, devices.awg, config.camera
     _step(out, "camera configured", lambda: camera.configure(cam),

@@ -6,16 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.sim.camera import (
+from drivers.sim.camera import SimCamera
+from drivers.sim.clock import SimClock
+from drivers.sim.readout import (
     CIC_PER_VOLTAGE_STEP,
     READOUT_OFFSET_SHIFTS,
     ROW_EXTRA_SHIFTS,
-    SimCamera,
     clock_induced_charge,
     read_noise,
     readout_time,
 )
-from drivers.sim.clock import SimClock
 from engine.config import CameraConfig, SimImagingConfig, SystemConfig, load_config
 from scripts.readout_tradeoff import measure
 

@@ -7,8 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from drivers.sim.camera import SimCamera, readout_time
+from drivers.sim.camera import SimCamera
 from drivers.sim.clock import SimClock
+from drivers.sim.readout import readout_time
 from engine.config import CameraConfig, SystemConfig
 from engine.devices import Camera, DeviceError
 

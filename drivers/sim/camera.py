@@ -19,6 +19,8 @@ truth, plus the camera's own settings):
   ``counts = electrons / electrons_per_count + bias`` rounded and clipped to the 16-bit ADC
   range ``[0, 65535]`` (saturation).
 
+The readout's timing and options, and the noise they set, are ``drivers/sim/readout.py``'s.
+
 The expensive part runs in a numba kernel that draws from the caller's ``np.random.Generator``, so a seeded
 lab is reproducible. Drawing it literally (``_emccd_counts``: a Poisson, a gain and a normal draw per pixel)
 costs ~45 ns a pixel. ``_emccd_counts_split`` draws the same distribution faster by splitting each pixel's
@@ -33,27 +35,6 @@ literal path (gamma gain and read noise). The frames have the same statistics as
 not the same pixels for a given seed; ``SimCamera(reference=True)`` renders with the literal kernel, and a
 test compares the two. A background pixel costs ~10 ns instead of ~45; a 256x512 frame of the paper's grid
 with ~300 atoms ~4 ms instead of ~6.5 (the atoms' own pixels, ~12k, still draw gamma gains).
-
-Readout timing (paper Sec. III.A, Table 1 I.2-I.4): frame transfer of ``1039`` rows, then per read-out row one
-vertical shift plus ``width + 48`` horizontal shifts (image columns, 32 dark references, 16 overscan), a
-constant ``468 + 604 + 16`` shifts through the dump/gain chain, and the DMA of the binned frame at
-``transfer_bytes_per_s``. The horizontal shift count uses the *unbinned* ROI width: the paper measures that
-horizontal binning does not change the readout time (Fig. 3d), while vertical binning halves it per doubling.
-
-The camera's readout options (iXon Ultra 888, the paper's camera; Andor's hardware guide, "Variable vertical
-shift speed" and "Variable horizontal readout rate") and what each costs here:
-- vertical shift speed (``VERTICAL_SHIFT_OPTIONS_S``): faster rows shorten the frame transfer and every
-  row's readout; a faster clock moves a bright pixel's charge completely only at a higher vertical clock
-  voltage (each speed has a lowest ``vertical_clock_voltage``, enforced: charge left behind, i.e. smear,
-  is not modelled), and a higher voltage raises the clock-induced charge by ``CIC_PER_VOLTAGE_STEP`` per
-  step; at a fixed voltage a faster clock lowers it a little (``sqrt`` of the shift time, a model choice);
-- horizontal readout rate (``HORIZONTAL_RATE_OPTIONS_HZ``): faster pixels shorten every row; read noise
-  grows as the square root of the rate (the amplifier's bandwidth; white-noise model);
-- binning: vertical binning reads fewer rows; both directions put a spot's light in fewer binned pixels,
-  each with one read noise but the stray light and CIC of all its sensor pixels;
-- region of interest: fewer rows read, fewer columns shifted per row.
-``sim.imaging.clock_induced_charge_e`` and ``read_noise_e`` are the sensor's values at the slowest, normal
-voltage shift (4.33 us) and at 30 MHz (``REFERENCE_VERTICAL_SHIFT_S``, ``REFERENCE_HORIZONTAL_RATE_HZ``).
 """
 
 from __future__ import annotations
@@ -68,30 +49,20 @@ import numpy as np
 from scipy.special import gammainc, log_ndtr, ndtr
 
 from drivers.sim.clock import SimClock
-from engine.config import CameraConfig, SimImagingConfig, SystemConfig
+from drivers.sim.readout import ReadoutTime, check_readout_options, clock_induced_charge, read_noise, readout_time
+from engine.config import CameraConfig, SystemConfig
 from engine.devices import DeviceError, FrameInfo
 from engine.imaging_calibration import Population
 from engine.psf import PsfModel, frame_shape, pixel_fractions, trap_positions_px
 
 __all__ = [
-    "HORIZONTAL_RATE_OPTIONS_HZ",
-    "VERTICAL_SHIFT_OPTIONS_S",
     "BackgroundTable",
-    "ReadoutTime",
     "SimCamera",
     "background_table",
-    "check_readout_options",
-    "clock_induced_charge",
     "predicted_sum_statistics",
-    "read_noise",
-    "readout_time",
     "trap_brightness",
 ]
 
-FRAME_TRANSFER_ROWS = 1037 + 2  # storage section + transition rows (CCD201-20)
-ROW_EXTRA_SHIFTS = 32 + 16  # dark reference + overscan pixels shifted with every row
-READOUT_OFFSET_SHIFTS = 468 + 604 + 16  # distribution chain + multiplication chain + overscan, once per frame
-BYTES_PER_PIXEL = 2
 ADC_MAX_COUNTS = 65535
 STAMP_RADIUS_SIGMAS = 5.0  # light beyond 5 sigma (< 1e-6 of it) is not rendered
 EM_EXCESS_NOISE_FACTOR = 2.0  # variance of a high-gain EM register's output: 2 * n * gain**2
@@ -99,95 +70,6 @@ ADC_QUANTISATION_VAR = 1.0 / 12.0
 _BRIGHTNESS_STREAM = int.from_bytes(b"brightness", "big")  # spawn key of the brightness pattern under sim.seed
 
 FaultKind = Literal["timeout", "corrupt"]
-
-#: iXon Ultra 888 vertical shift speeds (seconds per row) -> the lowest vertical clock voltage step that moves
-#: a bright pixel's charge completely at that speed (an estimate: Andor advises raising the voltage for the
-#: fastest speeds; a lab checks for vertical smear and sets its own)
-VERTICAL_SHIFT_OPTIONS_S: dict[float, int] = {0.6e-6: 4, 1.13e-6: 2, 2.2e-6: 0, 4.33e-6: 0}
-#: iXon Ultra 888 horizontal readout rates of the EM amplifier (pixels per second)
-HORIZONTAL_RATE_OPTIONS_HZ: tuple[float, ...] = (30e6, 20e6, 10e6, 1e6)
-#: Settings at which ``sim.imaging.clock_induced_charge_e`` and ``read_noise_e`` hold
-REFERENCE_VERTICAL_SHIFT_S = 4.33e-6
-REFERENCE_HORIZONTAL_RATE_HZ = 30e6
-#: Clock-induced charge grows by this factor per vertical clock voltage step (order of magnitude: CIC rises
-#: steeply with the clock swing; Daigle et al. and Andor's guides)
-CIC_PER_VOLTAGE_STEP = 2.0
-
-
-@dataclass(frozen=True)
-class ReadoutTime:
-    """The paper's acquisition-time model split as in Table 1 (seconds)."""
-
-    exposure_s: float
-    frame_transfer_s: float  # I.2
-    row_readout_s: float  # I.3
-    dma_s: float  # I.4 (model: binned frame bytes / transfer rate)
-
-    @property
-    def readout_s(self) -> float:
-        """Everything after the exposure until the frame is in host memory."""
-        return self.frame_transfer_s + self.row_readout_s + self.dma_s
-
-    @property
-    def total_s(self) -> float:
-        return self.exposure_s + self.readout_s
-
-
-def readout_time(camera: CameraConfig) -> ReadoutTime:
-    """Acquisition time of one frame under ``camera`` (see the module docstring for the model)."""
-    h, w = frame_shape(camera)
-    shift_s = 1.0 / camera.horizontal_rate_hz
-    return ReadoutTime(
-        exposure_s=camera.exposure_s,
-        frame_transfer_s=FRAME_TRANSFER_ROWS * camera.vertical_shift_s,
-        row_readout_s=h * (camera.vertical_shift_s + (camera.roi_width_px + ROW_EXTRA_SHIFTS) * shift_s)
-        + READOUT_OFFSET_SHIFTS * shift_s,
-        dma_s=h * w * BYTES_PER_PIXEL / camera.transfer_bytes_per_s,
-    )
-
-
-def _option(value: float, options: tuple[float, ...] | list[float]) -> float | None:
-    """The camera option ``value`` stands for (floats from YAML: 1 part in 1e6), or None."""
-    return next((o for o in options if math.isclose(value, o, rel_tol=1e-6)), None)
-
-
-def check_readout_options(camera: CameraConfig) -> None:
-    """Raise ``ValueError`` unless ``camera`` asks for readout settings the iXon Ultra 888 has, with a vertical
-    clock voltage high enough for its shift speed."""
-    speed = _option(camera.vertical_shift_s, list(VERTICAL_SHIFT_OPTIONS_S))
-    if speed is None:
-        speeds = ", ".join(f"{s * 1e6:g}e-6" for s in VERTICAL_SHIFT_OPTIONS_S)
-        raise ValueError(
-            f"camera.vertical_shift_s = {camera.vertical_shift_s:g} s is not a vertical shift speed of the "
-            f"iXon Ultra 888; use one of {speeds}"
-        )
-    if _option(camera.horizontal_rate_hz, HORIZONTAL_RATE_OPTIONS_HZ) is None:
-        rates = ", ".join(f"{r:.0e}" for r in HORIZONTAL_RATE_OPTIONS_HZ)
-        raise ValueError(
-            f"camera.horizontal_rate_hz = {camera.horizontal_rate_hz:g} is not a readout rate of the iXon Ultra "
-            f"888's EM amplifier; use one of {rates}"
-        )
-    needed = VERTICAL_SHIFT_OPTIONS_S[speed]
-    if camera.vertical_clock_voltage < needed:
-        raise ValueError(
-            f"camera.vertical_shift_s = {speed * 1e6:g} us leaves charge behind at vertical clock voltage "
-            f"+{camera.vertical_clock_voltage}; set camera.vertical_clock_voltage to at least {needed} "
-            "(more clock-induced charge) or shift slower"
-        )
-
-
-def clock_induced_charge(camera: CameraConfig, imaging: SimImagingConfig) -> float:
-    """Mean clock-induced electrons per sensor pixel per readout at the camera's vertical clocking: the
-    sensor's value at 4.33 us and normal voltage, times ``CIC_PER_VOLTAGE_STEP`` per voltage step, times
-    ``sqrt(shift time / 4.33 us)`` (a shorter clock pulse makes a little less)."""
-    speed = math.sqrt(camera.vertical_shift_s / REFERENCE_VERTICAL_SHIFT_S)
-    return imaging.clock_induced_charge_e * speed * CIC_PER_VOLTAGE_STEP**camera.vertical_clock_voltage
-
-
-def read_noise(camera: CameraConfig, imaging: SimImagingConfig) -> float:
-    """Read noise (electrons rms) at the camera's horizontal readout rate: the sensor's 30 MHz value scaled
-    by ``sqrt(rate / 30 MHz)`` (the output amplifier's white noise over its bandwidth)."""
-    return imaging.read_noise_e * math.sqrt(camera.horizontal_rate_hz / REFERENCE_HORIZONTAL_RATE_HZ)
 
 
 def _stamps(config: SystemConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -463,12 +463,6 @@ class EngineThread(EngineCommands):
             raise self._error
         return self
 
-    def __enter__(self) -> EngineThread:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     @property
     def config(self) -> SystemConfig | None:
         """The engine's configuration (``None`` before ``start``)."""

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from functools import partial
 from operator import methodcaller
-from typing import Any, Protocol
+from typing import Any, Protocol, Self
 
 import numpy as np
 
@@ -99,6 +99,20 @@ class EngineCommands(ABC):
 
     @abstractmethod
     def submit(self, command: Callable[[Any], Any]) -> Future[Any]: ...
+
+    @abstractmethod
+    def start(self) -> EngineCommands: ...
+
+    @abstractmethod
+    def close(self, *, timeout_s: float = 10.0) -> None: ...
+
+    def __enter__(self) -> Self:
+        """``with host:`` starts the engine and closes it at the end."""
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def configure(self, config: SystemConfig) -> Future[None]:
         return self.submit(methodcaller("apply", config))

@@ -170,12 +170,6 @@ class EngineProcess(EngineCommands):
         self._reader.start()
         return self
 
-    def __enter__(self) -> EngineProcess:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     @property
     def pid(self) -> int | None:
         """The engine process's id (``None`` before ``start``)."""

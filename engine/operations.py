@@ -26,7 +26,7 @@ from enum import IntEnum
 import numpy as np
 from numba import njit
 
-__all__ = ["IDLE", "EXTRACT", "SHIFT", "IMPLANT", "OpKind", "Operations", "Plan", "clear_slots"]
+__all__ = ["IDLE", "EXTRACT", "SHIFT", "IMPLANT", "OpKind", "Operations", "Plan", "batch_slot_kind", "clear_slots"]
 
 
 class OpKind(IntEnum):
@@ -149,6 +149,17 @@ class Plan:
     @property
     def n_steps(self) -> int:
         return int(self.steps.shape[0])
+
+
+@njit(cache=True, nogil=True)
+def batch_slot_kind(t: int, n_shift: int) -> int:
+    """The kind of slot ``t`` of a batch with ``n_shift`` SHIFT slots: EXTRACT first, IMPLANT last, SHIFT
+    between (every numba planner writes its batches in this order)."""
+    if t == 0:
+        return EXTRACT
+    if t == n_shift + 1:
+        return IMPLANT
+    return SHIFT
 
 
 @njit(cache=True, nogil=True)

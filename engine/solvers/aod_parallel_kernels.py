@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from engine.operations import EXTRACT, IMPLANT, SHIFT, clear_slots
+from engine.operations import SHIFT, batch_slot_kind, clear_slots
 from engine.solvers.aod_parallel_balance import _balance
 from engine.solvers.aod_parallel_fill import _fill_phase
 from engine.solvers.aod_parallel_records import OK, OVERFLOW, STUCK, UNSOLVABLE
@@ -128,12 +128,7 @@ def emit_batches(
     for b in range(nb):
         a0, a1, b0, b1, n_shift = bmeta[b, 0], bmeta[b, 1], bmeta[b, 2], bmeta[b, 3], bmeta[b, 4]
         for t in range(n_shift + 2):
-            if t == 0:
-                kind[n] = EXTRACT
-            elif t == n_shift + 1:
-                kind[n] = IMPLANT
-            else:
-                kind[n] = SHIFT
+            kind[n] = batch_slot_kind(t, n_shift)
             # internal rows -> y (x if transposed), internal columns -> x (y if transposed)
             shift = kind[n] == SHIFT
             if transposed:

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from engine.operations import EXTRACT, IMPLANT, SHIFT, clear_slots
+from engine.operations import SHIFT, batch_slot_kind, clear_slots
 
 __all__ = ["batch_hops", "count_batched_slots"]
 
@@ -206,6 +206,18 @@ def _axis_tones(n, t, at, shift, m, order, hop_ptr, cells, axis, site, delta):
     return count
 
 @njit(cache=True, nogil=True)
+def _sort_by_start(order: np.ndarray, m: int, hop_ptr: np.ndarray, cells: np.ndarray, axis: int) -> None:
+    """Insertion-sort the hops ``order[:m]`` by their start cell's row (``axis`` 0) or column (1)."""
+    for i in range(1, m):
+        v = order[i]
+        j = i - 1
+        while j >= 0 and cells[hop_ptr[order[j]], axis] > cells[hop_ptr[v], axis]:
+            order[j + 1] = order[j]
+            j -= 1
+        order[j + 1] = v
+
+
+@njit(cache=True, nogil=True)
 def emit_hop_batches(
     hop_ptr: np.ndarray, cells: np.ndarray, batch_ptr: np.ndarray, n_batches: int, batch_hop: np.ndarray,
     nx: int, order_r: np.ndarray, order_c: np.ndarray, n_prev: int,
@@ -232,26 +244,10 @@ def emit_hop_batches(
         for i in range(m):
             order_r[i] = batch_hop[a0 + i]
             order_c[i] = batch_hop[a0 + i]
-        for i in range(1, m):
-            v = order_r[i]
-            j = i - 1
-            while j >= 0 and cells[hop_ptr[order_r[j]], 0] > cells[hop_ptr[v], 0]:
-                order_r[j + 1] = order_r[j]
-                j -= 1
-            order_r[j + 1] = v
-            v = order_c[i]
-            j = i - 1
-            while j >= 0 and cells[hop_ptr[order_c[j]], 1] > cells[hop_ptr[v], 1]:
-                order_c[j + 1] = order_c[j]
-                j -= 1
-            order_c[j + 1] = v
+        _sort_by_start(order_r, m, hop_ptr, cells, 0)
+        _sort_by_start(order_c, m, hop_ptr, cells, 1)
         for t in range(l_max + 2):
-            if t == 0:
-                kind[n] = EXTRACT
-            elif t == l_max + 1:
-                kind[n] = IMPLANT
-            else:
-                kind[n] = SHIFT
+            kind[n] = batch_slot_kind(t, l_max)
             at = t - 1 if t > 0 else 0  # cell index at the start of this slot
             if t == l_max + 1:
                 at = l_max

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from engine.operations import EXTRACT, IMPLANT, SHIFT, clear_slots
+from engine.operations import SHIFT, batch_slot_kind, clear_slots
 from engine.solvers.redrec_solve import HORIZONTAL
 
 __all__ = ["batch_segments", "count_slots"]
@@ -67,12 +67,8 @@ def _vertical_batch(
         ys = y_site[n]
         for j in range(m):
             ys[j] = cur[j]
-        if t == 0:
-            kind[n] = EXTRACT
-        elif t == dmax + 1:
-            kind[n] = IMPLANT
-        else:
-            kind[n] = SHIFT
+        kind[n] = batch_slot_kind(t, dmax)
+        if kind[n] == SHIFT:
             ds = y_delta[n]
             for j in range(m):
                 d = sign[j] if left[j] > 0 else 0
@@ -97,7 +93,7 @@ def _horizontal_batch(
     dist = abs(r - d)
     step = 1 if r > d else -1
     for t in range(dist + 2):
-        kind[n] = EXTRACT if t == 0 else (IMPLANT if t == dist + 1 else SHIFT)
+        kind[n] = batch_slot_kind(t, dist)
         for i in range(m0, m1):
             y_site[n, i - m0] = mv[i, 0]
             y_delta[n, i - m0] = 0

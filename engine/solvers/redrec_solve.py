@@ -42,6 +42,16 @@ __all__ = ["HORIZONTAL", "OK", "UNSOLVABLE", "VERTICAL", "append_steps", "band_r
 
 
 @njit(cache=True, nogil=True)
+def _column_atoms(occ: np.ndarray, c: int) -> int:
+    """Atoms in column ``c`` of ``occ``."""
+    n = 0
+    for y in range(occ.shape[0]):
+        if occ[y, c]:
+            n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
 def band_rows(target: np.ndarray) -> tuple[int, int, int]:
     """``(lo, hi, problem)``: the band is rows ``lo..hi-1``; problem 0 = a full-width band, 1 = some row is
     partly filled, 2 = the full rows are not contiguous, 3 = no row is filled."""
@@ -236,12 +246,8 @@ def _select_atoms(
         tr[t, 3] = n_rows
         if recv[r, 0] == 0:
             recv[r, 0] = 1
-            n_own = 0
-            for y in range(ny):
-                if occ[y, r]:
-                    n_own += 1
-            recv[r, 5] = h - n_own
-            recv[r, 4] = _own_slide_counts(occ, r, lo, h - n_own, slide[r])
+            recv[r, 5] = h - _column_atoms(occ, r)
+            recv[r, 4] = _own_slide_counts(occ, r, lo, recv[r, 5], slide[r])
         for _ in range(k):
             direct = recv[r, 1] == 0
             yt = -1
@@ -315,10 +321,7 @@ def redrec_segments(
     h = hi - lo
     total = 0
     for c in range(nx):
-        n = 0
-        for y in range(ny):
-            if occ[y, c]:
-                n += 1
+        n = _column_atoms(occ, c)
         surplus[c] = n - h
         total += n
     if total < h * nx:
@@ -331,10 +334,7 @@ def redrec_segments(
     n_seg = 0
     n_mv = 0
     for c in range(nx):
-        n = 0
-        for y in range(ny):
-            if occ[y, c]:
-                n += 1
+        n = _column_atoms(occ, c)
         surplus[c] = n - h
         if n == h:
             m0 = n_mv

@@ -26,6 +26,18 @@ def jit_and_python_outputs(script: str) -> tuple[Any, Any]:
     return runs[0], runs[1]
 
 
+#: What every plan-twin script starts with: ``np``, ``plan_summary`` and the list ``out`` it appends to.
+_PLANS_PRELUDE = "import json\nimport numpy as np\nfrom tests.numba_twins import plan_summary\nout = []\n"
+
+
+def assert_plans_agree(body: str, *, at_least: int) -> None:
+    """Run ``body`` (it appends ``plan_summary(plan)`` of each plan it makes to ``out``) compiled and as plain
+    Python: the same plans, and at least ``at_least`` of them (so a script that plans nothing fails)."""
+    compiled, interpreted = jit_and_python_outputs(_PLANS_PRELUDE + body + "print(json.dumps(out))\n")
+    assert compiled == interpreted, "the compiled kernels and their plain-Python run made different plans"
+    assert len(compiled) >= at_least, f"{len(compiled)} plans compared, expected at least {at_least}"
+
+
 def plan_summary(plan: Plan) -> list[Any]:
     """What the twin scripts compare of a plan, as JSON: its steps and every slot described."""
     ops = plan.operations

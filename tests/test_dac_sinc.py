@@ -58,7 +58,7 @@ def test_a_moving_tone_stays_compensated_along_its_frequency_ramp() -> None:
     wf = config.waveforms
     theta = phase_track(bank.cycles("x"), axis_tones(config, "x").phase_rad, 62, 1, wf.slot_samples, wf.shape,
                         wf.shape_sharpness)
-    f_inst = np.mod(np.diff(theta), 2 * np.pi) / (2 * np.pi) * FS  # the instantaneous frequency between samples n and n + 1
+    f_inst = np.mod(np.diff(theta), 2 * np.pi) / (2 * np.pi) * FS  # between samples n and n + 1
     f_inst = np.concatenate([[f_inst[0]], 0.5 * (f_inst[1:] + f_inst[:-1])])  # at sample n
     assert f_inst[0] == pytest.approx(290.2e6, abs=1e3) and f_inst[-1] == pytest.approx(294.8e6, abs=5e3)
     s = np.sin(theta[:-1])

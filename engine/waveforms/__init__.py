@@ -2,12 +2,14 @@
 
 Tones
 -----
-Every site k of an axis has a static tone ``alpha_k * sin(theta_k[n])`` (``axis_tones``; ``alpha_k`` is the
-sample amplitude, the configured one divided by the DAC's hold gain ``sinc(nu_k / f_s)`` when
-``waveforms.compensate_dac_sinc``, ``tone_sample_amplitudes``, so the AOD receives the configured comb):
-frequency ``nu_k`` is a whole number ``M_k`` of cycles per slot of ``N = slot_samples`` samples, so the
-static phase is computed exactly with integers, ``theta_k[n] = phi_k + 2 pi ((M_k n) mod N) / N``, and is
-``phi_k`` at every slot boundary. A tone moving k -> k+d (d = +-1) follows the configured transition shape ``s(u)``, ``u = n / N``
+``alpha_k`` below is the sample amplitude: the configured amplitude divided by the DAC's hold gain
+``sinc(nu_k / f_s)`` when ``waveforms.compensate_dac_sinc`` (``tone_sample_amplitudes``), so that the AOD
+receives the configured comb.
+
+Every site k of an axis has a static tone ``alpha_k * sin(theta_k[n])`` (``axis_tones``): frequency ``nu_k``
+is a whole number ``M_k`` of cycles per slot of ``N = slot_samples`` samples, so the static phase is computed
+exactly with integers, ``theta_k[n] = phi_k + 2 pi ((M_k n) mod N) / N``, and is ``phi_k`` at every slot
+boundary. A tone moving k -> k+d (d = +-1) follows the configured transition shape ``s(u)``, ``u = n / N``
 (min-jerk, tanh or erf, symmetric about mid-slot): frequency ``nu_k + (nu_{k+d} - nu_k) s(u)``, amplitude
 ``alpha_k + (alpha_{k+d} - alpha_k) s(u)``, phase = the discrete running sum of the frequency plus an
 end-pinned correction ``c g(u)`` (``g`` = min-jerk: ``g(0) = 0``, ``g(1) = 1``, ``g' = g'' = 0`` at both ends;

@@ -21,7 +21,15 @@ import numpy as np
 import yaml
 from pydantic import Field, ValidationError, model_validator
 
-from engine.aod_limits import ChannelLimits, band_problem, comb_power_w, dbm_to_w, resolution_problem, w_to_dbm
+from engine.aod_limits import (
+    ChannelLimits,
+    band_problem,
+    comb_power_w,
+    dbm_to_w,
+    resolution_problem,
+    sample_amplitudes,
+    w_to_dbm,
+)
 from engine.card_rules import slot_length_problem
 from engine.config_base import Fraction, _Model
 from engine.config_devices import DevicesConfig
@@ -61,12 +69,15 @@ PixelCoordinate = Annotated[float, Field(ge=-1e5, le=1e5)]
 class RFLimitsConfig(_Model):
     """RF limits of one AWG channel (the amplifier and AOD it drives), checked when a configuration is applied
     and on every segment before upload (``engine.aod_limits``). Power is the mean power into ``load_ohm`` with
-    a full-scale sample at ``devices.spectrum.amplitude_mv`` (the simulated AWG models the same output)."""
+    a full-scale sample at ``devices.spectrum.amplitude_mv`` (the simulated AWG models the same output), from the
+    samples themselves: with ``waveforms.compensate_dac_sinc`` those carry the compensated tone amplitudes, and the
+    DAC's hold only lowers what reaches the amplifier, so every limit is checked on the larger figure."""
 
     max_peak_amplitude: Fraction = Field(default=1.0, description="largest |sample| as a fraction of full scale")
     max_summed_amplitude: Annotated[float, Field(gt=0, le=1)] = Field(
-        default=1.0, description="largest sum of the static tone amplitudes (bounds the peak whatever the phases; "
-        "at most 1, where the AWG would clip)"
+        default=1.0, description="largest sum of the static tones' sample amplitudes, compensated for the DAC's "
+        "sinc roll-off when waveforms.compensate_dac_sinc (bounds the peak whatever the phases; at most 1, where "
+        "the AWG would clip)"
     )
     max_rf_power_dbm: Annotated[float, Field(ge=-100, le=60)] | None = Field(
         default=None, description="largest mean RF power into the amplifier in dBm (or give max_rf_power_mw)"
@@ -103,7 +114,10 @@ class ToneAxisConfig(_Model):
 
     start_hz: Annotated[float, Field(gt=0, le=10e9)] = 80e6
     spacing_hz: Annotated[float, Field(gt=0, le=1e9)] = 1e6
-    amplitude: Annotated[float, Field(gt=0, le=1)] = 0.015
+    amplitude: Annotated[float, Field(gt=0, le=1)] = Field(
+        default=0.014, description="each tone's delivered amplitude (fraction of full scale); 64 tones from 80 MHz "
+        "at 1 MHz, compensated for the DAC's sinc roll-off at 624 MS/s, sum to 0.95"
+    )
     phases: Literal["continuous", "schroeder", "zero"] = Field(
         default="continuous",
         description="continuous: site phases chosen so that every one-site move is a pure min-jerk (or tanh/erf) "
@@ -278,6 +292,12 @@ class WaveformConfig(_Model):
     table_max_bytes: Annotated[int, Field(ge=0, le=2**34)] = Field(
         default=512 * 2**20, description="lookup-table budget; moves not in the table are synthesized directly"
     )
+    compensate_dac_sinc: bool = Field(
+        default=True,
+        description="render every tone at its amplitude / sinc(f / sample_rate_hz), so that after the DAC's "
+        "zero-order hold each delivers its configured amplitude (0.67 of it at 295 MHz and 624 MS/s without); the "
+        "RF limits are checked on the compensated (larger) sample amplitudes. false: traps near Nyquist are shallower",
+    )
 
     @property
     def slot_samples(self) -> int:
@@ -398,22 +418,31 @@ class SystemConfig(_Model):
                 problems.append(problem)
         if rf.max_tones is not None and n > rf.max_tones:
             problems.append(f"{where}: {n} tones, above {where}.rf.max_tones = {rf.max_tones}")
-        summed = tones.amplitude * n
+        wf = self.waveforms
+        freq = tones.start_hz + tones.spacing_hz * np.arange(n, dtype=np.float64)
+        amps = sample_amplitudes(freq, np.full(n, tones.amplitude), wf.sample_rate_hz, wf.compensate_dac_sinc)
+        gain = float(n * tones.amplitude / np.sum(amps))  # the hold's mean gain, to scale the advice
+        compensated = (
+            f" (compensated for the DAC's sinc roll-off, waveforms.compensate_dac_sinc: each tone at amplitude / "
+            f"sinc(f / sample_rate_hz), {np.max(amps) / tones.amplitude:.3g}x at {freq[-1] / 1e6:g} MHz)"
+            if wf.compensate_dac_sinc else ""
+        )
+        summed = float(np.sum(amps))
         if summed > rf.max_summed_amplitude * (1 + 1e-9):
             problems.append(
-                f"{where}.amplitude = {tones.amplitude:g} x {n} tones = {summed:g} of full scale, above "
+                f"{where}.amplitude = {tones.amplitude:g} x {n} tones = {summed:.4g} of full scale{compensated}, above "
                 f"{where}.rf.max_summed_amplitude = {rf.max_summed_amplitude:g} (1: the AWG would clip when every tone "
-                f"is on); use at most {rf.max_summed_amplitude / n:.4g}"
+                f"is on); use at most {rf.max_summed_amplitude * gain / n:.4g}"
             )
         if rf.max_power_w is not None:
             full_scale_v = self.full_scale_v(0 if axis == "x_tones" else 1)
-            power_w = comb_power_w(np.full(n, tones.amplitude), full_scale_v, rf.load_ohm)
+            power_w = comb_power_w(amps, full_scale_v, rf.load_ohm)
             if power_w > rf.max_power_w * (1 + 1e-9):
                 problems.append(
-                    f"{where}: {n} tones of amplitude {tones.amplitude:g} at a full scale of {full_scale_v * 1e3:g} mV "
-                    f"deliver {w_to_dbm(power_w):.2f} dBm ({power_w * 1e3:.4g} mW) into {rf.load_ohm:g} ohm, above "
-                    f"{where}.rf's limit of {w_to_dbm(rf.max_power_w):.2f} dBm; lower the amplitude or "
-                    "devices.spectrum.amplitude_mv"
+                    f"{where}: {n} tones of amplitude {tones.amplitude:g}{compensated} at a full scale of "
+                    f"{full_scale_v * 1e3:g} mV deliver {w_to_dbm(power_w):.2f} dBm ({power_w * 1e3:.4g} mW) into "
+                    f"{rf.load_ohm:g} ohm, above {where}.rf's limit of {w_to_dbm(rf.max_power_w):.2f} dBm; lower the "
+                    "amplitude or devices.spectrum.amplitude_mv"
                 )
         return problems
 

@@ -96,6 +96,8 @@ def synth_axis(
         pos = tone.site0 + (tone.site1 - tone.site0) * shape(u)
         f = np.interp(pos, sites, freqs)
         alpha = np.interp(pos, sites, alphas)
+        if config.waveforms.compensate_dac_sinc:  # as the bank renders: delivered after the DAC's hold at f
+            alpha = alpha / np.sinc(f / fs)
         lo, hi = tone.ramp
         a = tone.amp0 + (tone.amp1 - tone.amp0) * shape((u - lo) / (hi - lo))
         out += a * alpha * np.sin(phi + 2 * np.pi * np.cumsum(f) / fs)
@@ -126,7 +128,7 @@ def chain_config(nx: int = 16, **over) -> SystemConfig:
             "nx": nx,
             "ny": 1,
             "trap_source": "aod",
-            "x_tones": {"start_hz": 70e6, "spacing_hz": 1e6, "amplitude": 0.015},
+            "x_tones": {"start_hz": 70e6, "spacing_hz": 1e6, "amplitude": 0.014},
         },
         "target": {"kind": "centre", "count": max(1, nx // 2)},
         "camera": {"roi_width_px": 16 * nx, "roi_height_px": 16},

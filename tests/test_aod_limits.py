@@ -85,9 +85,10 @@ def test_the_band_needs_centre_and_width() -> None:
     [
         ({"max_tones": 31}, "32 tones, above array.x_tones.rf.max_tones = 31"),
         ({"max_summed_amplitude": 0.4}, "above array.x_tones.rf.max_summed_amplitude = 0.4"),
-        # 32 tones of 0.015 at 140 mV into 50 ohm: 32 (2.1 mV)^2 / 100 ohm = 1.41e-6 W = -28.50 dBm
-        ({"max_rf_power_dbm": -29.0}, "deliver -28.50 dBm"),
-        ({"max_rf_power_mw": 1e-3}, "deliver -28.50 dBm"),
+        # 32 tones of 0.014 at 140 mV into 50 ohm: 32 (1.96 mV)^2 / 100 ohm = 1.23e-6 W = -29.10 dBm, and
+        # -28.83 dBm with each tone at 0.014 / sinc(f / 624 MS/s) (70..101 MHz) as the samples carry it
+        ({"max_rf_power_dbm": -29.0}, "deliver -28.83 dBm"),
+        ({"max_rf_power_mw": 1e-3}, "deliver -28.83 dBm"),
     ],
 )
 def test_each_rf_limit_is_refused_when_a_configuration_exceeds_it(rf: dict, hint: str) -> None:
@@ -121,6 +122,13 @@ def test_the_segment_kernel_matches_the_plain_reference() -> None:
     assert segment_levels(x, 96)[0][1] == 32768
 
 
+def _sample_amplitudes(cfg) -> np.ndarray:
+    """The chain's tones as the samples carry them: amplitude / sinc(f / f_s), the DAC's hold compensated."""
+    tones = cfg.array.x_tones
+    freq = tones.start_hz + tones.spacing_hz * np.arange(cfg.array.nx)
+    return tones.amplitude / np.sinc(freq / cfg.waveforms.sample_rate_hz)
+
+
 def _full_comb_samples(cfg) -> np.ndarray:
     n = cfg.array.nx
     return synth_slots(cfg, [([static(k) for k in range(n)], None)] * 2)
@@ -130,12 +138,12 @@ def test_the_guard_measures_the_segment_the_amplifier_would_get() -> None:
     cfg = chain_config(32)
     samples = _full_comb_samples(cfg)
     # the measured slot power equals the comb's power (the tones are orthogonal over a slot)
-    expected_w = comb_power_w(np.full(32, 0.015), cfg.full_scale_v(0), 50.0)
+    expected_w = comb_power_w(_sample_amplitudes(cfg), cfg.full_scale_v(0), 50.0)
     _, ms = segment_levels(samples, cfg.waveforms.slot_samples)
     measured_w = ms[0] * (cfg.full_scale_v(0) / 32767.0) ** 2 / 50.0
     assert measured_w == pytest.approx(expected_w, rel=2e-3)
     peak = np.abs(samples.astype(np.int64)).max() / 32767.0
-    assert peak <= 32 * 0.015 + 1e-3
+    assert peak <= float(np.sum(_sample_amplitudes(cfg))) + 1e-3
 
     tight_peak = chain_config(32, array={"x_tones": {"rf": {"max_peak_amplitude": 0.5 * peak}}})
     guard = SegmentGuard(tight_peak.channel_limits(), cfg.waveforms.slot_samples)
@@ -187,7 +195,7 @@ def test_the_spectrum_adapter_refuses_a_segment_over_the_rf_limits() -> None:
     segment = _full_comb_samples(cfg)
     assert segment.shape[0] % 32 == 0
     peak = np.abs(segment.astype(np.int64)).max() / 32767.0
-    power_w = comb_power_w(np.full(32, 0.015), cfg.full_scale_v(0), 50.0)
+    power_w = comb_power_w(_sample_amplitudes(cfg), cfg.full_scale_v(0), 50.0)
     louder = (segment.astype(np.float64) * 1.1).astype(np.int16)  # a render that went wrong: 0.8 dB too loud
     for rf, sent, match in (
         ({"max_peak_amplitude": math.floor(100 * peak) / 100}, segment, "max_peak_amplitude"),

@@ -67,7 +67,7 @@ def test_axis_tones_comb_and_phases() -> None:
     cfg = chain_config(16)
     t = axis_tones(cfg, "x")
     assert np.allclose(t.frequency_hz, 70e6 + 1e6 * np.arange(16))
-    assert np.all(t.amplitude == 0.015)
+    assert np.all(t.amplitude == 0.014)
     cyc = np.round(t.frequency_hz * cfg.waveforms.slot_duration_s).astype(np.int64)
     n = cfg.waveforms.slot_samples
     assert np.allclose(wrap(t.phase_rad - np.pi * (cyc - cyc[0]) * (n - 1) / n), 0, atol=1e-9)  # continuous
@@ -236,10 +236,11 @@ def test_static_phase_is_exact_and_periodic() -> None:
     row = b.synthesize("x", STATIC, 5, exact=True)
     t = axis_tones(cfg, "x")
     tt = np.arange(n) / cfg.waveforms.sample_rate_hz
-    expect = 0.015 * FULL_SCALE * np.sin(t.phase_rad[5] + 2 * np.pi * t.frequency_hz[5] * tt)
+    a = 0.014 * FULL_SCALE / np.sinc(t.frequency_hz[5] / 624e6)  # compensated for the DAC's hold (default)
+    expect = a * np.sin(t.phase_rad[5] + 2 * np.pi * t.frequency_hz[5] * tt)
     assert np.abs(row - expect).max() < 1e-6
     # the next sample after the slot is the slot's first sample again
-    after = 0.015 * FULL_SCALE * np.sin(t.phase_rad[5] + 2 * np.pi * t.frequency_hz[5] * n / 624e6)
+    after = a * np.sin(t.phase_rad[5] + 2 * np.pi * t.frequency_hz[5] * n / 624e6)
     assert after == pytest.approx(row[0])
 
 
@@ -260,14 +261,15 @@ def test_every_kind_joins_the_static_tones_at_both_ends(shape: str) -> None:
     n = b.slot_samples
     t = axis_tones(cfg, "x")
     w = 2 * np.pi / cfg.waveforms.sample_rate_hz
-    a = 0.015 * FULL_SCALE
+    site_a = 0.014 * FULL_SCALE / np.sinc(t.frequency_hz / cfg.waveforms.sample_rate_hz)  # DAC-compensated
+    a = float(site_a.max())
     for kind, (s0, a0, s1, a1) in KIND_ENDS.items():
         for k in (1, 7, 14):
             row = b.synthesize("x", kind, k, exact=True)
             assert np.allclose(row, ref.tone("x", kind, k), rtol=0, atol=1e-6 * a)
             j = np.arange(4)
-            start = a0 * a * np.sin(t.phase_rad[k + s0] + w * t.frequency_hz[k + s0] * j)
-            end = a1 * a * np.sin(t.phase_rad[k + s1] - w * t.frequency_hz[k + s1] * (j + 1))
+            start = a0 * site_a[k + s0] * np.sin(t.phase_rad[k + s0] + w * t.frequency_hz[k + s0] * j)
+            end = a1 * site_a[k + s1] * np.sin(t.phase_rad[k + s1] - w * t.frequency_hz[k + s1] * (j + 1))
             assert np.abs(row[:4] - start).max() < 1e-3 * a, (kind, k)
             assert np.abs(row[n - 1 - j] - end).max() < 1e-3 * a, (kind, k)
 
@@ -476,14 +478,18 @@ def test_invalid_slots_are_rejected(which, kind, ys, xs, dys, dxs, match) -> Non
 
 def test_amplitude_sum_above_full_scale_is_rejected(tmp_path: Path) -> None:
     """A comb is refused by the config itself; CSV amplitudes (not known to the config) by the bank."""
-    with pytest.raises(ConfigError, match=r"array.x_tones.amplitude = 0.02 x 64 tones = 1.28"):
+    # the samples carry each tone's amplitude / sinc(f / f_s) (the DAC's hold compensated): 1.34, not 1.28
+    with pytest.raises(ConfigError, match=r"array.x_tones.amplitude = 0.02 x 64 tones = 1.34 of full scale "
+                                          r"\(compensated for the DAC's sinc roll-off.*use at most 0.0149"):
         chain_config(64, array={"x_tones": {"amplitude": 0.02}})
+    with pytest.raises(ConfigError, match=r"array.x_tones.amplitude = 0.02 x 64 tones = 1.28 of full scale, above"):
+        chain_config(64, array={"x_tones": {"amplitude": 0.02}}, waveforms={"compensate_dac_sinc": False})
     with pytest.raises(ConfigError, match=r"array.y_tones.amplitude"):
         grid_config(8, 60, array={"y_tones": {"amplitude": 0.02}})
     csv = write_csv(tmp_path / "loud.csv", [(0.02, 70e6 + 1e6 * k, 0.0) for k in range(64)])
-    with pytest.raises(ValueError, match=r"x_tones: the 64 tones can sum to 1.28 .*lower array.x_tones.amplitude"):
+    with pytest.raises(ValueError, match=r"x_tones: the 64 tones can sum to 1.34 .*lower array.x_tones.amplitude"):
         WaveformBank(chain_config(64, array={"x_tones": {"csv": csv}}))
-    WaveformBank(load_config(ROOT / "examples" / "grid-32x64.yaml"))  # 64 x 0.015 fits
+    WaveformBank(load_config(ROOT / "examples" / "grid-32x64.yaml"))  # 64 x 0.012, compensated, fits
 
 
 def test_worst_case_does_not_clip(tmp_path: Path) -> None:
@@ -491,6 +497,7 @@ def test_worst_case_does_not_clip(tmp_path: Path) -> None:
     n = 16
     amps = np.full(n, 1.0 / n)
     amps[3], amps[4] = 1.5 / n, 0.5 / n  # unequal amplitudes: movers interpolate between them
+    amps *= np.sinc((70e6 + 1e6 * np.arange(n)) / 624e6)  # so that the DAC-compensated samples sum to exactly 1
     csv = write_csv(tmp_path / "x.csv", [(amps[k], 70e6 + 1e6 * k, np.pi / 2) for k in range(n)])
     cfg = chain_config(n, array={"x_tones": {"csv": csv}})
     b = WaveformBank(cfg)
@@ -507,7 +514,8 @@ def test_worst_case_does_not_clip(tmp_path: Path) -> None:
     assert np.abs(s.astype(np.int32)).max() <= 32767
 
     g = grid_config(8, 6, array={"x_tones": {"amplitude": 1 / 8, "phases": "zero"},
-                                 "y_tones": {"amplitude": 1 / 6, "phases": "zero"}})
+                                 "y_tones": {"amplitude": 1 / 6, "phases": "zero"}},
+                    waveforms={"compensate_dac_sinc": False})  # so the amplitudes sum to exactly 1
     gb = WaveformBank(g)
     gref = ReferenceSynth(g)
     ops = Operations(nx=8, ny=6)

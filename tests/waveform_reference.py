@@ -57,6 +57,8 @@ class ReferenceSynth:
         """float64[N] counts of one tone (any kind, the chain's composite mover rows included)."""
         t = self.tones[axis]
         a = t.amplitude * FULL_SCALE
+        if self.config.waveforms.compensate_dac_sinc:  # the DAC's zero-order hold delivers a * sinc(f / f_s)
+            a = a / np.sinc(t.frequency_hz / self.config.waveforms.sample_rate_hz)
         static = a[k] * np.sin(self.phase(axis, k)[:-1])
         if kind >= INNER_UP:
             up = kind in (INNER_UP, HEAD_UP, TAIL_UP, ISO_UP)

@@ -13,8 +13,12 @@ Method
 For every slot, five short windows (at the start, a quarter, the middle, three quarters and the end of the
 slot) are fitted by least squares onto sine/cosine pairs at the **half-site frequency grid**: every site
 frequency ``nu_k`` and every midpoint ``(nu_k + nu_{k+1}) / 2`` (plus one half-step beyond each end of the
-comb to soak up edge energy). The amplitude at each grid point, divided by the site's static amplitude, is a
-fraction that is ~1 for a full tone sitting there and ~0 for none. Then:
+comb to soak up edge energy). The amplitude at each grid point, times the DAC's zero-order-hold gain at its
+frequency (``sinc(f / f_s)``: what the card's output, hence the AOD, receives; ``engine.aod_limits.dac_sinc_gain``)
+and divided by the site's configured amplitude, is a fraction that is ~1 for a full tone sitting there and ~0
+for none. The waveform bank renders tones at ``amplitude / sinc(f / f_s)`` by default
+(``waveforms.compensate_dac_sinc``), which reads ~1 everywhere; uncompensated tones read ``sinc(f / f_s)``
+(0.67 at 295 MHz and 624 MS/s), and the world sees the shallower tweezers (``FULL_FRACTION``). Then:
 
 - a tone **moving** between k and k+1 is at the half-site point at mid-slot (transitions are symmetric about
   mid-slot), so a local maximum at ``k + 1/2`` in the mid window marks a mover. Adjacent movers form a run
@@ -65,7 +69,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from engine.aod_limits import PHYSICAL_MIN_SLOT_SPACING
+from engine.aod_limits import PHYSICAL_MIN_SLOT_SPACING, dac_sinc_gain
 from engine.config import SystemConfig
 from engine.tones import check_below_nyquist, tones_of
 
@@ -78,7 +82,13 @@ __all__ = [
     "site_tones",
 ]
 
-#: Amplitude (or tweezer depth) fraction at or above which a tone counts as "on" (holds an atom).
+#: Delivered amplitude fraction (of the configured amplitude; for crossed AODs the product ``amp_x * amp_y``)
+#: at or above which a tweezer holds an atom. An AOD in its linear regime diffracts a power proportional to the
+#: RF power, so a tweezer's depth goes as the square of this product: the threshold is a quarter of the design
+#: depth. A modelling choice (docs/physics-figures.md gives no figure; docs/simulation.md explains it): deep
+#: enough that a full tweezer is far above it (a 5 % amplitude error or the hold's 0.92 at 143 MHz and 624 MS/s
+#: changes nothing), shallow enough that only a real fault crosses it, such as an uncompensated comb near
+#: Nyquist (0.67 x 0.67 = 0.45 at 295 MHz on both axes), where a tweezer spills the atom it carries there.
 FULL_FRACTION = 0.5
 #: Window centres as fractions of the slot: start, quarter, mid, three-quarter, end (clipped into the slot).
 WINDOW_CENTRES = (0.0, 0.25, 0.5, 0.75, 1.0)
@@ -199,7 +209,9 @@ class _AxisModel:
         ref[1::2] = amps
         ref[2:-1:2] = 0.5 * (amps[:-1] + amps[1:])
         ref[0], ref[-1] = amps[0], amps[-1]
-        self.ref_amp = ref
+        # the sample amplitude at each grid point that the DAC's zero-order hold delivers as the configured one:
+        # dividing a measured sample amplitude by it gives the delivered fraction
+        self.full_sample_amp = ref / dac_sinc_gain(half, sample_rate_hz)
         self.min_gap_hz = float(np.min(np.diff(half)))
 
     def projector(self, sample_rate_hz: float, n_window: int) -> np.ndarray:
@@ -276,7 +288,7 @@ class SampleDecoder:
         self._proj = [a.projector(self.sample_rate_hz, w) for a in axes]
         self._gather = self.window_offsets[:, None] + np.arange(w, dtype=np.int64)[None, :]  # [W, L]
         self._kernel_args = [
-            _KernelArgs.build(p, (a.ref_amp * self.full_scale).astype(np.float32), a.n_sites)
+            _KernelArgs.build(p, (a.full_sample_amp * self.full_scale).astype(np.float32), a.n_sites)
             for p, a in zip(self._proj, axes, strict=True)
         ]
         # the cache's hash weights (``_hash_slots``): fixed random 32-bit numbers, one pair per sample of a slot
@@ -307,7 +319,7 @@ class SampleDecoder:
         coef = x.reshape(-1, x.shape[-1]) @ self._proj[axis].T  # [S*W, 2Q]
         q = model.grid_hz.size
         amp = np.hypot(coef[:, :q], coef[:, q:])
-        amp /= (model.ref_amp * self.full_scale).astype(np.float32)
+        amp /= (model.full_sample_amp * self.full_scale).astype(np.float32)
         return amp.reshape(n_slots, len(WINDOW_CENTRES), q)
 
     def decode(self, samples: np.ndarray) -> DecodedSegment:

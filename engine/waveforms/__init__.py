@@ -2,6 +2,10 @@
 
 Tones
 -----
+``alpha_k`` below is the sample amplitude: the configured amplitude divided by the DAC's hold gain
+``sinc(nu_k / f_s)`` when ``waveforms.compensate_dac_sinc`` (``tone_sample_amplitudes``), so that the AOD
+receives the configured comb.
+
 Every site k of an axis has a static tone ``alpha_k * sin(theta_k[n])`` (``axis_tones``): frequency ``nu_k``
 is a whole number ``M_k`` of cycles per slot of ``N = slot_samples`` samples, so the static phase is computed
 exactly with integers, ``theta_k[n] = phi_k + 2 pi ((M_k n) mod N) / N``, and is ``phi_k`` at every slot
@@ -67,7 +71,7 @@ Rendering: a slot's rows are summed exactly in int32 (four rows per pass, a run 
 traffic of float32 rows, and a slot is bound by reading its rows.
 
 Scaling: amplitude 1.0 is 32767 counts (the decoder's full scale). At most one tone per site is lit at a
-time, so an axis peaks at the sum of its amplitudes; a configuration whose sum exceeds 1 is rejected, which
+time, so an axis peaks at the sum of its sample amplitudes; a configuration whose sum exceeds 1 is rejected, which
 makes clipping impossible (samples are also clamped to +-32767 against float rounding).
 
 Hot paths (``lookup``, ``render``, ``render_failsafe``) are numba ``nogil`` kernels over buffers the bank
@@ -85,7 +89,7 @@ Reading a comb or a tone CSV is ``engine.tones``, shared with the simulated deco
 """
 
 from engine.tones import Tones, schroeder_phases
-from engine.waveforms.axes import axes_of, axis_tones, check_headroom, continuous_phases
+from engine.waveforms.axes import axes_of, axis_tones, check_headroom, continuous_phases, tone_sample_amplitudes
 from engine.waveforms.bank import WaveformBank, prefix_formula_bytes, table_formula_bytes
 from engine.waveforms.shapes import (
     CHAIN_KINDS,
@@ -132,4 +136,5 @@ __all__ = [
     "schroeder_phases",
     "shape_curve",
     "table_formula_bytes",
+    "tone_sample_amplitudes",
 ]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from engine.aod_limits import sample_amplitudes
 from engine.config import ConfigError, SystemConfig, ToneAxisConfig
 from engine.tones import Tones, check_below_nyquist, tones_of
 
@@ -71,21 +72,33 @@ def axis_tones(config: SystemConfig, axis: str) -> Tones:
     return Tones(freq, amp, np.asarray(phase, dtype=np.float64))
 
 
+def tone_sample_amplitudes(config: SystemConfig, tones: Tones) -> np.ndarray:
+    """The amplitude every static tone of ``tones`` is rendered at (fraction of full scale): its configured
+    amplitude, divided by the DAC's sinc gain at its frequency when ``waveforms.compensate_dac_sinc``
+    (``engine.aod_limits.sample_amplitudes``), so that the AOD receives the configured comb."""
+    wf = config.waveforms
+    return sample_amplitudes(tones.frequency_hz, tones.amplitude, wf.sample_rate_hz, wf.compensate_dac_sinc)
+
+
 def axes_of(config: SystemConfig) -> tuple[str, ...]:
     """The AOD axes a configuration drives: x only for a chain (trap_source ``aod``), x and y for ``slm``."""
     return ("x",) if config.array.trap_source == "aod" else ("x", "y")
 
 
 def check_headroom(config: SystemConfig, tones: dict[str, Tones] | None = None) -> None:
-    """Raise ``ValueError`` if an axis could clip: its worst case (the sum of its n largest amplitudes, one
-    tone per site) must be at most 1.0 of full scale."""
+    """Raise ``ValueError`` if an axis could clip: its worst case (the sum of its n sample amplitudes, one
+    tone per site, compensated for the DAC's sinc roll-off when so configured) must be at most 1.0 of full
+    scale."""
     for axis in axes_of(config):
         t = tones[axis] if tones is not None else axis_tones(config, axis)
-        worst = float(np.sum(t.amplitude))
+        amps = tone_sample_amplitudes(config, t)
+        worst = float(np.sum(amps))
         if worst > 1.0 + 1e-12:
             n = t.amplitude.size
+            gain = float(np.sum(t.amplitude) / worst)
+            why = " (compensated for the DAC's sinc roll-off: waveforms.compensate_dac_sinc)" if gain < 1 else ""
             raise ValueError(
-                f"array.{axis}_tones: the {n} tones can sum to {worst:.4g} of full scale, so int16 samples would "
-                f"clip; lower array.{axis}_tones.amplitude (at most {1.0 / n:.4g} for {n} equal tones)"
+                f"array.{axis}_tones: the {n} tones can sum to {worst:.4g} of full scale{why}, so int16 samples "
+                f"would clip; lower array.{axis}_tones.amplitude (at most {gain / n:.4g} for {n} equal tones)"
             )
 

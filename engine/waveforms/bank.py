@@ -9,7 +9,7 @@ import numpy as np
 
 from engine.config import SystemConfig
 from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations
-from engine.waveforms.axes import axes_of, axis_tones, check_headroom
+from engine.waveforms.axes import axes_of, axis_tones, check_headroom, tone_sample_amplitudes
 from engine.waveforms.kernels import (
     _E_ARRAY,
     _E_KEYS,
@@ -58,10 +58,13 @@ class WaveformBank:
         self._cyc = np.zeros((2, self.n_max), dtype=np.int64)
         self._amp = np.zeros((2, self.n_max), dtype=np.float64)
         self._phi = np.zeros((2, self.n_max), dtype=np.float64)
+        # the amplitude each tone is rendered at: compensated for the DAC's sinc roll-off here, once, so the
+        # table and direct synthesis (and a move's linear amplitude ramp between two sites) carry it for free
+        self.sample_amplitude = {ax: tone_sample_amplitudes(config, self.tones[ax]) for ax in self.axes}
         for a, ax in enumerate(self.axes):
             t = self.tones[ax]
             self._cyc[a, : t.frequency_hz.size] = np.round(t.frequency_hz * wf.slot_duration_s).astype(np.int64)
-            self._amp[a, : t.amplitude.size] = t.amplitude
+            self._amp[a, : t.amplitude.size] = self.sample_amplitude[ax]
             self._phi[a, : t.phase_rad.size] = t.phase_rad
         self._shp = _shape_table(wf.shape, wf.shape_sharpness, n)
         self.scale = FULL_SCALE
@@ -71,7 +74,7 @@ class WaveformBank:
         self.q = np.ones(2, dtype=np.float32)
         self._inv_q = np.ones(2, dtype=np.float64)
         for a, ax in enumerate(self.axes):
-            bound = (3.0 if self.chain else 1.0) * float(np.max(self.tones[ax].amplitude)) * self.scale
+            bound = (3.0 if self.chain else 1.0) * float(np.max(self.sample_amplitude[ax])) * self.scale
             self._inv_q[a] = 32767.0 / bound
             self.q[a] = np.float32(1.0 / self._inv_q[a])
 
@@ -130,7 +133,7 @@ class WaveformBank:
             hold = np.zeros(n)
             for k in range(arr.nx):
                 m0 = int(self._cyc[0, k]) % n
-                hold += t.amplitude[k] * self.scale * np.sin(t.phase_rad[k] + 2 * np.pi / n * ((m0 * idx) % n))
+                hold += self._amp[0, k] * self.scale * np.sin(t.phase_rad[k] + 2 * np.pi / n * ((m0 * idx) % n))
             self._base[0] = hold.astype(np.float32)
         self._hold = np.ascontiguousarray(np.clip(np.rint(self._base.T), -32767, 32767).astype(np.int16))
 

@@ -729,7 +729,7 @@ class LabService:
                 while len(self._final_frames) > self.final_frames_kept:
                     self._final_frames.popitem(last=False)
         if self._store is not None:
-            self._store.put(record)
+            self._store.put(record, frame)
         self.trap_stats.add(record)
         for listener in list(self._listeners):
             try:

@@ -89,12 +89,18 @@ async def _open_dashboard(stack: contextlib.AsyncExitStack, url: str) -> tuple[A
 async def _step_tabs(page: Any, seen: dict[str, Any], deadline: float) -> None:
     """Click the dashboard's tabs in turn, one every ``TAB_PERIOD_S``, until ``deadline`` (each tab draws its
     panels when shown), then note the last shot the page shows."""
+    from playwright.async_api import TimeoutError as PageTimeout  # deferred, as in _open_dashboard
+
     try:
-        while time.perf_counter() < deadline:
-            await page.get_by_role("tab", name=DASHBOARD_TABS[seen["tab_clicks"] % len(DASHBOARD_TABS)]).click()
+        while (left_s := deadline - time.perf_counter()) > 0:
+            tab = page.get_by_role("tab", name=DASHBOARD_TABS[seen["tab_clicks"] % len(DASHBOARD_TABS)])
+            try:
+                await tab.click(timeout=max(1.0, left_s) * 1e3)  # a loaded machine's browser is slow to answer
+            except PageTimeout:
+                break  # the phase is over before the page took the click
             seen["tab_clicks"] += 1
             await asyncio.sleep(min(TAB_PERIOD_S, max(0.0, deadline - time.perf_counter())))
-        shown = await page.get_attribute("#atom-map", "data-shot-id")
+        shown = await page.get_attribute("#atom-map", "data-shot-id", timeout=10_000)
         seen["last_shot_shown"] = None if shown is None else int(shown)
     except Exception as err:  # noqa: BLE001 - reported, as above
         seen["error"] = f"{type(err).__name__}: {err}"[:300]
@@ -261,7 +267,11 @@ def run_load_bench(
             assert proc.stdout is not None
             proc.stdout.readline()  # "ready": the clients are up (the browser has drawn a shot), or they failed
             loaded = _collect(service, seconds)
-            out, _ = proc.communicate(timeout=seconds + 60)
+            try:  # the clients finish their last requests and close the browser: slow on a loaded machine
+                out, _ = proc.communicate(timeout=seconds + 180)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                raise
             clients = json.loads(out.strip().splitlines()[-1])
             if served_dashboard is not None:
                 clients["dashboard_updates"] = served_dashboard.updates - drawn_before

@@ -40,6 +40,8 @@ __all__ = ["Dashboard", "LabClient", "RunFiles", "target_presets"]
 
 log = logging.getLogger("llrs.dashboard")
 
+#: The History tab's camera image when the recorded cycle has no frame kept.
+HISTORY_NO_FRAME = "camera: no frame kept for this cycle (llrs serve --keep-frames N keeps them)"
 CALIBRATION_IMAGES = 40  # frames a threshold fit takes from the dashboard (as the API's default)
 
 #: The per-trap maps the "Traps" tab offers (statistic -> what it says).
@@ -94,6 +96,8 @@ class RunFiles(Protocol):
     def runs(self, *, limit: int = 100) -> list[dict[str, Any]]: ...
 
     def read_shot(self, name: str, index: int) -> dict[str, Any]: ...
+
+    def read_frame(self, name: str, index: int, cycle: int) -> np.ndarray: ...
 
 
 def target_presets(config: SystemConfig) -> OrderedDict[str, dict[str, Any]]:
@@ -363,6 +367,9 @@ class Dashboard:
             self.n_shot = gui.add_number("Shot in file", initial_value=0, min=0, step=1)
             self.n_cycle = gui.add_number("Cycle", initial_value=0, min=0, step=1)
             self.h_history = gui.add_html('<div id="history" style="color:#777">pick a run file</div>')
+            self.i_history_frame = gui.add_image(
+                np.zeros((8, 32, 3), dtype=np.uint8), label=HISTORY_NO_FRAME, format="png"
+            )
 
     # -- authority --------------------------------------------------------------------------------------------
 
@@ -727,6 +734,14 @@ class Dashboard:
             self.h_history.content = f'<div id="history" style="color:#d62728">{html.escape(str(err))}</div>'
             self._history_shown = shown
             return
+        cycle = views.clamp_cycle(shot, shown[2])
+        if shot["cycles"][cycle].get("frame"):  # the frame first: once the text names the cycle, all of it is shown
+            rgb, note = views.frame_to_rgb(store.read_frame(run, shown[1], cycle), min_width=600)
+            self.i_history_frame.image = rgb
+            self.i_history_frame.label = f"camera, shot {int(shot['shot_id'])} cycle {cycle}: {note}"
+        else:
+            self.i_history_frame.image = np.zeros((8, 32, 3), dtype=np.uint8)
+            self.i_history_frame.label = HISTORY_NO_FRAME
         download = f"{self.api_url}/api/runs/{run}" if self.api_url else f"/api/runs/{run}"
         self.h_history.content = views.history_html(shot, shown[2], self._positions, download_url=download)
         self._history_shown = shown

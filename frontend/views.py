@@ -843,19 +843,33 @@ def _losses_table(lost_by_cause: Mapping[str, float]) -> str:
     )
 
 
+def clamp_cycle(shot: Mapping[str, Any], cycle: int) -> int:
+    """The cycle of a recorded shot that the History tab shows when asked for ``cycle`` (the nearest one)."""
+    return min(max(cycle, 0), len(shot["cycles"]) - 1)
+
+
 def history_html(shot: Mapping[str, Any], cycle: int, positions_xy: np.ndarray, *, download_url: str) -> str:
     """A recorded shot (``GET /api/runs/{name}/shots/{index}``) at one cycle: its atom map with the plan as
-    arrows, the plan's size and the stage times, and a link to download the run file."""
+    arrows, the plan's size (pick-ups where recorded), the atoms the lab lost after it by cause (where the lab
+    reported them), whether its camera frame is kept, the stage times, and a link to download the run file."""
     cycles = shot["cycles"]
-    c = cycles[min(max(cycle, 0), len(cycles) - 1)]
+    c = cycles[clamp_cycle(shot, cycle)]
     moves = np.array(c.get("moves") or [], dtype=np.int64).reshape(-1, 2)
     svg = plan_svg(c["occupancy"], shot["target"], positions_xy, moves, max_width_px=680)
     stages = " · ".join(f"{k} {v / 1e3:.3f} ms" for k, v in c["stage_us"].items())
+    pickups = "" if c.get("pickups") is None else f", {c['pickups']} pick-ups"
+    lost = (c.get("truth") or {}).get("lost_by_cause")
+    lost_txt = "" if lost is None else "<br>lost after this image (lab): " + (
+        ", ".join(f'<span data-cause="{html.escape(k)}">{html.escape(k)} {v}</span>' for k, v in lost.items() if v)
+        or "none"
+    )
     return (
         f'<div id="history" data-shot-id="{int(shot["shot_id"])}" data-cycle="{c["index"]}" '
-        f'data-cycles="{len(cycles)}" data-moves="{len(moves)}" style="font-size:12px">'
+        f'data-cycles="{len(cycles)}" data-moves="{len(moves)}" data-frame="{int(bool(c.get("frame")))}" '
+        f'data-lost="{"" if lost is None else sum(lost.values())}" style="font-size:12px">'
         f'<b>shot {int(shot["shot_id"])}</b> ({html.escape(shot["outcome"])}), cycle {c["index"]} of '
         f"{len(cycles)}: {c['atoms']} atoms, {c['defects']} missing, plan {c['n_slots']} slots, "
-        f"{len(moves)} atoms moved · <a href=\"{html.escape(download_url)}\" download>download the run file</a>"
+        f"{len(moves)} atoms moved{pickups} · camera frame {'kept' if c.get('frame') else 'not kept'} · "
+        f"<a href=\"{html.escape(download_url)}\" download>download the run file</a>{lost_txt}"
         f'<br><span style="color:#555">{html.escape(stages)}</span><br>{svg}</div>'
     )

@@ -64,6 +64,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="address to bind the dashboard to (default: --host); e.g. 127.0.0.1 to keep the dashboard "
                    "on this machine while the API serves the lab network")
     p.add_argument("--runs-dir", default="runs", help="where the HDF5 run files go (default ./runs)")
+    p.add_argument("--keep-frames", type=int, default=0, metavar="N",
+                   help="keep the camera frames of every Nth shot in the run files (0: none, the default; 1: every "
+                   "shot): every cycle's where the engine kept them, else the shot's final frame; gzip-compressed")
+    p.add_argument("--keep-frames-mib", type=float, default=256.0, metavar="MIB",
+                   help="at most this many MiB of raw frames per run file (default 256)")
     p.add_argument("--pause", type=float, default=0.5, help="pause between continuous shots in seconds (default 0.5)")
     p.add_argument("--idle", action="store_true", help="do not start shots at once; wait for a command")
     p.add_argument("--no-dashboard", action="store_true", help="serve the API only")
@@ -176,6 +181,13 @@ def main(args: argparse.Namespace) -> int:
     except ConfigError as err:
         print(f"llrs serve: {err}", file=sys.stderr)
         return 2
+    from server.runstore import FrameKeeping, RunStore  # deferred, as the web stack below: h5py, the sim lab
+
+    try:
+        frames = FrameKeeping(every_nth_shot=args.keep_frames, max_mib=args.keep_frames_mib)
+    except ValueError as err:
+        print(f"llrs serve: --keep-frames / --keep-frames-mib: {err}", file=sys.stderr)
+        return 2
     family = socket.AF_INET6 if ":" in args.host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -193,7 +205,6 @@ def main(args: argparse.Namespace) -> int:
     import uvicorn
 
     from server.app import create_app
-    from server.runstore import RunStore
     from server.security import LOOPBACK_HOSTS
     from server.service import LabService
 
@@ -203,7 +214,7 @@ def main(args: argparse.Namespace) -> int:
     factory = engine_host_factory(in_process=args.engine == "process", cpu=args.engine_cpu)
     service = LabService(
         engine_thread=factory(config),
-        store=RunStore(args.runs_dir),
+        store=RunStore(args.runs_dir, frames=frames),
         pause_s=args.pause,
         engine_factory=factory,
         config=config,

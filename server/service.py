@@ -583,7 +583,7 @@ class LabService:
         with self._state_lock:
             self._fault = record.fault if record.outcome is Outcome.FAULT else None
         if self._store is not None:
-            self._store.put(record)
+            self._store.put(record, frame)
         self.trap_stats.add(record)
         for listener in list(self._listeners):
             try:

@@ -8,18 +8,20 @@ from pathlib import Path
 
 from engine.engine import EngineThread
 from frontend.dashboard import Dashboard
-from server.runstore import RunStore
+from server.runstore import FrameKeeping, RunStore
 from server.service import LabService
 from server_fakes import FakeEngine, example_config
 
 
 @contextmanager
-def dashboard_on_fake_lab(runs: Path, *, keep_images: bool = False) -> Iterator[tuple[Dashboard, LabService]]:
+def dashboard_on_fake_lab(
+    runs: Path, *, keep_images: bool = False, frames: FrameKeeping | None = None
+) -> Iterator[tuple[Dashboard, LabService]]:
     """A started dashboard (any free port, refreshed every 50 ms) over a service running fake shots; stored
-    runs go to ``runs``. Both are stopped on exit."""
+    runs go to ``runs`` (keeping camera frames as ``frames`` says). Both are stopped on exit."""
     service = LabService(
         engine_thread=EngineThread(lambda: FakeEngine(example_config(), keep_images=keep_images)),  # type: ignore[arg-type, return-value]
-        store=RunStore(runs),
+        store=RunStore(runs, frames=frames),
         pause_s=0.01,
     ).start()
     dashboard = Dashboard(service, port=0, refresh_s=0.05)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.config import SystemConfig, load_config
+from engine.psf import frame_shape
 from engine.records import CycleRecord, Outcome, ShotRecord
 from engine.targets import build_target
 
@@ -123,7 +124,8 @@ class FakeEngine:
                 )
             )
         if self.keep_images:
-            record.images = [np.full((16, 64), 500 + 100 * i, dtype=np.uint16) for i in range(len(states))]
+            shape = frame_shape(cfg.camera)  # as a camera configured by it reads them
+            record.images = [np.full(shape, 500 + 100 * i, dtype=np.uint16) for i in range(len(states))]
             self._last_frame = record.images[-1]
         record.lab_report = {"target_filled": record.outcome is Outcome.SUCCESS}
         record.duration_s = 0.05

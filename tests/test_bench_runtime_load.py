@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.load import run_load_bench
+from bench.load import CHROMIUM, run_load_bench
 from bench.runtime import (
     SOFTWARE_STAGES,
     SOFTWARE_STAGES_WITH_RENDER,
@@ -64,6 +64,26 @@ def test_load_bench_loads_the_server_and_reports_both_phases() -> None:
     clients = result["load"]["clients"]
     assert clients["errors"] == 0 and clients["requests"] >= 30
     assert clients["ws_clients"] == 3 and clients["ws_messages_per_reading_client"] > 0
+    assert np.isfinite(result["p99_growth"])
+
+
+@pytest.mark.bench
+@pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no Chromium at {CHROMIUM} (bash scripts/dev.sh installs it)")
+def test_load_bench_opens_the_dashboard_in_a_browser_for_the_load_phase() -> None:
+    """``--dashboard`` with no other client: the load phase is measured once the browser has drawn a shot,
+    while the dashboard draws the shots and the browser steps through its tabs."""
+    pytest.importorskip("playwright.async_api", reason="playwright is in the dev extra")
+    result = run_load_bench(
+        str(REPO / "examples/chain-1x64.yaml"), seconds=3.0, rate_hz=0, n_ws=0, cpu=None, dashboard=True
+    )
+    assert result["dashboard"] is True
+    clients = result["load"]["clients"]
+    browser = clients["browser"]
+    assert browser["error"] is None and browser["first_shot_drawn_s"] > 0 and browser["tab_clicks"] >= 1
+    assert browser["last_shot_shown"] is not None and clients["dashboard_updates"] > 0
+    assert clients["requests"] == 0 and clients["ws_clients"] == 0  # the dashboard was the only load
+    for phase in ("idle", "load"):
+        assert result[phase]["software_latency_us"]["n"] > 0
     assert np.isfinite(result["p99_growth"])
 
 

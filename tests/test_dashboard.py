@@ -14,7 +14,7 @@ from conftest import wait_until
 from dashboard_fakes import dashboard_on_fake_lab
 from engine.engine import EngineThread
 from frontend.dashboard import Dashboard
-from server.runstore import RunStore
+from server.runstore import FrameKeeping, RunStore
 from server.service import LabService
 from server_fakes import FakeEngine, example_config
 
@@ -23,7 +23,7 @@ pytest.importorskip("viser")
 
 @pytest.fixture
 def dash(tmp_path: Path) -> Iterator[tuple[Dashboard, LabService]]:
-    with dashboard_on_fake_lab(tmp_path / "runs", keep_images=True) as running:
+    with dashboard_on_fake_lab(tmp_path / "runs", keep_images=True, frames=FrameKeeping(every_nth_shot=2)) as running:
         yield running
 
 
@@ -91,6 +91,20 @@ def test_physicist_tabs_show_maps_assembly_and_a_recorded_shot(dash: tuple[Dashb
     dashboard._history_shown = None
     wait_until(lambda: f'data-shot-id="{records[1].shot_id}"' in dashboard.h_history.content, what="the history")
     assert "download the run file" in dashboard.h_history.content
+    # the lab's losses after the cycle's image, read back from the run file; shot 1 kept no frame (every 2nd)
+    released = records[1].cycles[0].lab_report["lost_by_cause"]["released"]
+    assert f'data-lost="{released}"' in dashboard.h_history.content
+    assert 'data-frame="0"' in dashboard.h_history.content
+    assert dashboard.i_history_frame.label.startswith("camera: no frame kept")
+    # shot 2 kept every cycle's frame: stepping through its cycles shows each one
+    for cycle in range(len(records[2].cycles)):
+        dashboard.n_shot.value, dashboard.n_cycle.value = 2, cycle
+        dashboard._history_shown = None
+        wait_until(lambda c=cycle: f'data-cycle="{c}" data-cycles' in dashboard.h_history.content
+                   and f"shot {records[2].shot_id} cycle {c}:" in dashboard.i_history_frame.label,
+                   what=f"cycle {cycle}'s frame")
+        assert 'data-frame="1"' in dashboard.h_history.content
+        assert dashboard.i_history_frame.image.shape != (8, 32, 3)  # the frame drawn, not the placeholder
 
 
 def test_new_controls_are_read_only_without_the_token(tmp_path: Path) -> None:

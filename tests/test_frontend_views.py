@@ -259,3 +259,23 @@ def test_plan_svg_draws_an_arrow_per_moved_atom() -> None:
     assert svg.count('class="move"') == 3
     assert states(svg).count("spare") == 3
     assert views.plan_svg(["11001010"], ["00111100"], chain_positions(), None).count('class="move"') == 0
+
+
+def test_history_html_shows_a_recorded_cycle_with_its_losses_and_frame() -> None:
+    """A historic shot's cycle as the run file gives it back: plan arrows, pick-ups, the lab's losses by cause
+    (causes with none left out), whether a frame is kept; a cycle out of range shows the nearest one."""
+    cycle = {"index": 0, "occupancy": ["11001010"], "atoms": 4, "defects": 2, "n_slots": 6, "stage_us": {},
+             "moves": [[0, 2], [1, 3]], "pickups": 2, "frame": True,
+             "truth": {"lost_by_cause": {"transfer": 1, "vacuum": 0, "released": 2}}}
+    last = {"index": 1, "occupancy": ["00111100"], "atoms": 4, "defects": 0, "n_slots": 0, "stage_us": {},
+            "moves": [], "pickups": None, "truth": {}}
+    shot = {"shot_id": 9, "outcome": "success", "target": ["00111100"], "cycles": [cycle, last]}
+    first = views.history_html(shot, 0, chain_positions(), download_url="/api/runs/x.h5")
+    assert 'data-cycle="0"' in first and 'data-frame="1"' in first and 'data-lost="3"' in first
+    assert "2 pick-ups" in first and "camera frame kept" in first
+    assert re.findall(r'data-cause="(\w+)"', first) == ["transfer", "released"]
+    assert first.count('class="move"') == 2
+    assert views.clamp_cycle(shot, 7) == 1 and views.clamp_cycle(shot, -1) == 0
+    beyond = views.history_html(shot, 7, chain_positions(), download_url="/api/runs/x.h5")
+    assert 'data-cycle="1"' in beyond and 'data-frame="0"' in beyond and 'data-lost=""' in beyond
+    assert "lost after this image" not in beyond and "pick-ups" not in beyond

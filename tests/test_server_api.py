@@ -16,6 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from engine.engine import EngineThread
+from engine.psf import frame_shape
 from server.app import create_app
 from server.hub import LiveHub
 from server.runstore import RunStore
@@ -107,7 +108,7 @@ def test_image_is_lossless_png(client: TestClient) -> None:
     r = client.get(f"/api/shots/{shot['shot_id']}/image/0")
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"
     pixels = _png_pixels(r.content)
-    assert pixels.shape == (16, 64) and (pixels == 500).all()
+    assert pixels.shape == frame_shape(example_config().camera) and (pixels == 500).all()
 
 
 def test_get_put_patch_config(client: TestClient, lab: tuple[LabService, FakeEngine]) -> None:
@@ -544,7 +545,8 @@ def test_live_websocket_sends_frames_on_request(client: TestClient) -> None:
         header = ws.receive_json()
         pixels = np.frombuffer(ws.receive_bytes(), dtype="<u2").reshape(header["shape"])
     assert cycle["type"] == "cycle" and cycle["shot_id"] == shot["shot_id"]
-    assert header == {"type": "image", "shot_id": shot["shot_id"], "cycle": 0, "shape": [16, 64], "dtype": "<u2"}
+    shape = list(frame_shape(example_config().camera))
+    assert header == {"type": "image", "shot_id": shot["shot_id"], "cycle": 0, "shape": shape, "dtype": "<u2"}
     assert (pixels == 500).all()  # the stand-in's cycle-0 frame
 
 

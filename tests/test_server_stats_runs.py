@@ -4,6 +4,8 @@ per-cycle counts and moved atoms read back as they were recorded."""
 from __future__ import annotations
 
 import io
+import struct
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -12,10 +14,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from drivers.sim.lab import LOSS_CAUSES
 from engine.engine import EngineThread
+from engine.psf import frame_shape
 from engine.records import CycleRecord, Outcome, ShotRecord
 from server.app import create_app
-from server.runstore import RunStore
+from server.runstore import FrameKeeping, RunStore
 from server.service import LabService
 from server_fakes import FakeEngine, example_config
 
@@ -124,3 +128,136 @@ def test_run_file_keeps_counts_and_moved_atoms(tmp_path: Path) -> None:
         assert reopened.read_shot(name, 0)["cycles"][0]["moves"] == [[0, 1], [5, 2]]  # a closed file, from disk
     finally:
         reopened.close()
+
+
+def _png_pixels(data: bytes) -> np.ndarray:
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    w, h, depth = struct.unpack(">IIB", data[16:25])
+    idat = data[data.index(b"IDAT") + 4 :]
+    raw = np.frombuffer(zlib.decompress(idat[: idat.index(b"IEND") - 8]), dtype=np.uint8).reshape(h, -1)
+    assert depth == 16
+    return raw[:, 1:].copy().view(">u2").reshape(h, w)
+
+
+def _shot(config: object, shot_id: int, cycles: list[CycleRecord]) -> ShotRecord:
+    occ = cycles[0].occupancy
+    return ShotRecord(shot_id=shot_id, config_digest=config.digest(), algorithm="red-rec",  # type: ignore[attr-defined]
+                      target=occ, outcome=Outcome.SUCCESS, cycles=cycles)
+
+
+def test_run_file_keeps_the_lab_losses_per_cycle_by_cause(tmp_path: Path) -> None:
+    """A historic shot keeps what the lab reported per cycle (atoms lost by cause): in the file as
+    ``lost_by_cause[shot, cycle, cause]`` (-1: not reported), and read back as the cycle's ``truth``."""
+    config = example_config()
+    occ = np.zeros((config.array.ny, config.array.nx), dtype=bool)
+    store = RunStore(tmp_path)
+    store.note_config(config)
+    reported = dict.fromkeys(LOSS_CAUSES, 0) | {"transfer": 2, "vacuum": 1}
+    store.put(_shot(config, 3, [
+        CycleRecord(index=0, occupancy=occ, atoms=0, defects=0, lab_report={"lost_by_cause": reported}),
+        CycleRecord(index=1, occupancy=occ, atoms=0, defects=0),  # hardware: nothing reported
+    ]))
+    store.flush()
+    name = store.runs()[0]["name"]
+    store.close()
+    with h5py.File(tmp_path / name, "r") as f:
+        causes = __import__("json").loads(f.attrs["loss_causes"])
+        assert causes == list(LOSS_CAUSES)
+        assert f["lost_by_cause"][0, 0, causes.index("transfer")] == 2
+        assert (f["lost_by_cause"][0, 1] == -1).all()
+        assert "frames" not in f  # frames are kept only when asked
+    reopened = RunStore(tmp_path)
+    try:
+        shot = reopened.read_shot(name, 0)
+    finally:
+        reopened.close()
+    assert shot["cycles"][0]["truth"] == {"lost_by_cause": reported}
+    assert shot["cycles"][1]["truth"] == {}
+    assert [c["frame"] for c in shot["cycles"]] == [False, False]
+
+
+def test_frames_of_every_nth_shot_are_kept_and_served(tmp_path: Path) -> None:
+    """With every 2nd shot's frames kept, run-file shots 0 and 2 keep every cycle's frame (the engine kept
+    them) and shot 1 none; each is served as a lossless PNG, a missing one is a 404 that says why."""
+    config = example_config()
+    service = LabService(
+        engine_thread=EngineThread(lambda: FakeEngine(config, keep_images=True)),  # type: ignore[arg-type, return-value]  # a FakeEngine stands in for Engine
+        store=RunStore(tmp_path / "runs", frames=FrameKeeping(every_nth_shot=2)),
+        pause_s=0.01,
+    ).start()
+    try:
+        records = [service.shot() for _ in range(3)]
+        service.run_store.flush()  # type: ignore[union-attr]  # built with one
+        with TestClient(create_app(service=service, token=TOKEN)) as client:
+            name = client.get("/api/runs").json()[0]["name"]
+            for index, record in enumerate(records):
+                shot = client.get(f"/api/runs/{name}/shots/{index}").json()
+                kept = index % 2 == 0
+                assert [c["frame"] for c in shot["cycles"]] == [kept] * len(record.cycles)
+                for cycle in range(len(record.cycles)):
+                    r = client.get(f"/api/runs/{name}/shots/{index}/frames/{cycle}")
+                    if kept:
+                        assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+                        pixels = _png_pixels(r.content)
+                        assert pixels.shape == frame_shape(config.camera)
+                        assert (pixels == 500 + 100 * cycle).all()  # the fake's frame of that cycle, exactly
+                    else:
+                        assert r.status_code == 404 and "every 2th shot" in r.json()["detail"]
+            beyond = len(records[0].cycles)
+            assert client.get(f"/api/runs/{name}/shots/0/frames/{beyond}").status_code == 404
+            assert client.get(f"/api/runs/{name}/shots/3/frames/0").status_code == 404
+            assert client.get("/api/runs/20000101-000000-0.h5/shots/0/frames/0").status_code == 404
+        with h5py.File(tmp_path / "runs" / name, "r", swmr=True) as f:
+            assert f["frames"].compression == "gzip" and f["frames"].chunks == (1, *frame_shape(config.camera))
+            assert f["frame_index"][:].tolist() == (
+                [[0, c] for c in range(len(records[0].cycles))] + [[2, c] for c in range(len(records[2].cycles))]
+            )
+    finally:
+        service.close()
+
+
+def test_frames_are_bounded_per_file_and_default_to_the_final_one(tmp_path: Path) -> None:
+    """Without per-cycle images only the final frame (the last cycle's) is kept; a file keeps at most its
+    ``max_mib`` of raw frames, later shots keep everything else."""
+    config = example_config()
+    shape = frame_shape(config.camera)
+    one_frame_mib = 2 * shape[0] * shape[1] / (1 << 20)
+    keeping = FrameKeeping(every_nth_shot=1, max_mib=2.5 * one_frame_mib)
+    assert keeping.max_frames(shape) == 2
+    occ = np.zeros((config.array.ny, config.array.nx), dtype=bool)
+    store = RunStore(tmp_path, frames=keeping)
+    store.note_config(config)
+    for shot_id in range(3):
+        cycles = [CycleRecord(index=i, occupancy=occ, atoms=0, defects=0) for i in range(2)]
+        store.put(_shot(config, shot_id, cycles), np.full(shape, 7 + shot_id, dtype=np.uint16))
+    store.flush()
+    name = store.runs()[0]["name"]
+    try:
+        assert [c["frame"] for c in store.read_shot(name, 0)["cycles"]] == [False, True]
+        assert (store.read_frame(name, 1, 1) == 8).all()
+        assert store.read_shot(name, 2)["cycles"][1]["frame"] is False  # over the limit
+        with pytest.raises(LookupError, match="no camera frame kept for shot 2 cycle 1"):
+            store.read_frame(name, 2, 1)
+    finally:
+        store.close()
+
+
+@pytest.mark.parametrize("bad", [{"every_nth_shot": -1}, {"max_mib": 0.0}])
+def test_frame_keeping_refuses_nonsense(bad: dict[str, float]) -> None:
+    with pytest.raises(ValueError, match="must be"):
+        FrameKeeping(**bad)  # type: ignore[arg-type]
+
+
+def test_a_link_named_like_a_run_file_is_not_followed(lab: LabService, client: TestClient, tmp_path: Path) -> None:
+    """A symbolic link in the runs directory that looks like a run file (pointing outside, absolutely or
+    relatively) is not a run file: every run route answers 404 and nothing outside the directory is read."""
+    outside = tmp_path / "secret.h5"
+    outside.write_bytes(b"not for clients")
+    runs = lab.run_store.directory  # type: ignore[union-attr]  # built with one
+    (runs / "20260101-120000-0.h5").symlink_to(outside)
+    (runs / "20260101-120000-1.h5").symlink_to(Path("..") / "secret.h5")
+    for name in ("20260101-120000-0.h5", "20260101-120000-1.h5"):
+        for route in ("", "/shots/0", "/shots/0/frames/0"):
+            r = client.get(f"/api/runs/{name}{route}")
+            assert r.status_code == 404 and b"not for clients" not in r.content
+    assert client.get("/api/runs").json() == []

@@ -1,16 +1,18 @@
-"""Run files: list them, download one (HDF5), read one recorded shot of one.
+"""Run files: list them, download one (HDF5), read one recorded shot of one, and a camera frame kept with it.
 
 Names are checked strictly (``server.runstore.RUN_NAME``: what the run store writes, never a path), and
-files come only from the server's runs directory (``llrs serve --runs-dir``)."""
+files come only from the server's runs directory (``llrs serve --runs-dir``, through ``server.files.confine``).
+All are reads: open to anyone the server answers, as the shot history is."""
 
 from __future__ import annotations
 
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Query
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, Response
 from pydantic import BaseModel, Field
 
+from server.png import encode_png
 from server.routes.common import ERR, Service
 from server.runstore import RUN_NAME, RunStore
 
@@ -50,6 +52,14 @@ class RunCycleOut(BaseModel):
     pickups: int | None = Field(default=None, description="atoms the plan took into a tweezer (null: not recorded)")
     moves: list[list[int]] = Field(description="[source, destination] trap index of every atom the plan moved")
     counts: list[float] | None = Field(description="the image's PSF-weighted sums per trap (null: not recorded)")
+    frame: bool = Field(
+        default=False, description="its camera frame is kept (GET /api/runs/{name}/shots/{index}/frames/{cycle})"
+    )
+    truth: dict[str, Any] = Field(
+        default_factory=dict,
+        description="what the lab reported about this cycle: lost_by_cause, the atoms its world lost from this "
+        "cycle's image to the next, per cause (the simulated lab; empty on hardware)",
+    )
 
 
 class RunShotOut(BaseModel):
@@ -104,3 +114,23 @@ def run_shot(service: Service, name: RunName, index: Annotated[int, Path(ge=0)])
         return _store(service).read_shot(name, index)
     except (FileNotFoundError, IndexError) as err:
         raise HTTPException(404, detail=str(err)) from None
+
+
+@reads.get(
+    "/api/runs/{name}/shots/{index}/frames/{cycle}",
+    response_class=Response,
+    responses={
+        200: {"content": {"image/png": {}}, "description": "the camera frame (16-bit grayscale PNG, raw counts)"},
+        404: {**ERR, "description": "no such run file or shot, or no frame kept for that cycle (llrs serve "
+              "--keep-frames)"},
+    },
+    summary="A recorded cycle's camera frame as PNG, where the run file kept it",
+)
+def run_frame(
+    service: Service, name: RunName, index: Annotated[int, Path(ge=0)], cycle: Annotated[int, Path(ge=0)]
+) -> Response:
+    try:
+        frame = _store(service).read_frame(name, index, cycle)
+    except (FileNotFoundError, LookupError) as err:  # IndexError is a LookupError: no such shot
+        raise HTTPException(404, detail=str(err)) from None
+    return Response(content=encode_png(frame), media_type="image/png")

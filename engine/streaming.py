@@ -391,12 +391,34 @@ class Streamer:
         self.awg.wait_upload(timeout_s=self.timeout_s)
         report.max_upload_s = max(report.max_upload_s, self.clock.now_s() - t_wait)
 
-    def _link(self, k: int) -> None:
-        """Point control step k-1 and its failsafe at control step k (segment k is in memory)."""
+    def _link(self, k: int, report: StreamReport) -> bool:
+        """Point control step k-1 at control step k (segment k is in memory), then look where the card is:
+        if it has already fallen into failsafe k-1 (an underrun: counted, with the slots it had played),
+        point that at k as well at once and return True. Otherwise the card leaves k-1 for k and never sees
+        the failsafe, whose pointer ``_link_failsafe`` writes later, off the critical path."""
         lay = self.layout
-        nxt = lay.control_step(k)
-        self.awg.write_step(lay.control_step(k - 1), StepInfo(segment=lay.control_segment(k - 1), next_step=nxt))
-        self.awg.write_step(lay.failsafe_step(k - 1), StepInfo(segment=lay.failsafe_segment(k - 1), next_step=nxt))
+        self._link_control(k)
+        step = self.awg.current_step()
+        if not lay.is_failsafe_step(step):
+            return False
+        report.underruns += 1
+        report.failsafe_after_slots.append(lay.slots_before_failsafe(step))
+        self._link_failsafe(k)
+        return True
+
+    def _link_control(self, k: int) -> None:
+        """Point control step k-1 at control step k."""
+        lay = self.layout
+        self.awg.write_step(
+            lay.control_step(k - 1), StepInfo(segment=lay.control_segment(k - 1), next_step=lay.control_step(k))
+        )
+
+    def _link_failsafe(self, k: int) -> None:
+        """Point failsafe step k-1 at control step k: once the card is in it, it leaves for segment k."""
+        lay = self.layout
+        self.awg.write_step(
+            lay.failsafe_step(k - 1), StepInfo(segment=lay.failsafe_segment(k - 1), next_step=lay.control_step(k))
+        )
 
     def _stream_segments(self, ops: Operations, report: StreamReport, timer: StageTimer | None) -> None:
         """Segments 0 and 1 before playback starts (and segment 2 rendered under segment 1's DMA), then as
@@ -416,26 +438,28 @@ class Streamer:
         self._upload(ops, 1)
         self._render_segment(ops, 2, None)  # while segment 1 uploads: ready to go when playback starts
         self._wait_upload(report)
-        self._link(1)
+        self._link_control(1)  # the card is still at home: no failsafe to look at yet
+        self._link_failsafe(1)
         if timer is not None:
             timer.lap("IV.upload")
         self._start(lay.control_step(0), report, t0)
         if timer is not None:
             timer.lap("IV.sequence")
         slot_s = self._slot_s()
+        unlinked_failsafe = 0  # the segment whose failsafe pointer is still to write (0: none)
         for k in range(2, n_segments):
             self._upload(ops, k)
+            if unlinked_failsafe:  # while segment k uploads
+                self._link_failsafe(unlinked_failsafe)
             if k + 1 < n_segments:
                 self._render_segment(ops, k + 1, None)
             self._wait_upload(report)
             if report.underruns == 0:  # segments 0..k-1 played without pause: the card leaves k-1 then
                 slack_s = report.t_started_s + lay.slot_offsets[k] * slot_s - self.clock.now_s()
                 report.min_slack_s = min(report.min_slack_s, slack_s)
-            step = self.awg.current_step()
-            if lay.is_failsafe_step(step):
-                report.underruns += 1
-                report.failsafe_after_slots.append(lay.slots_before_failsafe(step))
-            self._link(k)
+            unlinked_failsafe = 0 if self._link(k, report) else k
+        if unlinked_failsafe:
+            self._link_failsafe(unlinked_failsafe)
         self._finish(len(ops))
         if timer is not None:
             timer.lap("V.stream")

@@ -177,7 +177,8 @@ def _cmd(args: argparse.Namespace) -> int:
     except ValueError:
         raise SystemExit(f"llrs bench streaming: --growth takes comma-separated numbers, not {args.growth!r}") from None
     if not growths or min(growths) < 1:
-        raise SystemExit(f"llrs bench streaming: --growth factors must be >= 1 (awg.segment_growth), got {args.growth!r}")
+        raise SystemExit(f"llrs bench streaming: --growth factors must be >= 1 (awg.segment_growth), "
+                         f"got {args.growth!r}")
     config = problem_config(args.problem, seed=args.seed)
     plans = _plans(config, args.plans)
     allowed = os.sched_getaffinity(0) if args.engine_cpu is not None else None

@@ -3,7 +3,8 @@
 Memory layout (segments and steps of the card, fixed when a configuration is applied)::
 
     segment 0            idle: the hold waveform (static tones of a chain, silence for SLM traps)
-    segments 1..K        control segments, ``waveforms_per_segment`` slots each
+    segments 1..K        control segments: the first two ``waveforms_per_segment`` slots each, then each
+                         ``segment_growth`` times the one before, up to ``max_waveforms_per_segment``
     segments K+1..2K     failsafe segments: the tones where the paired control segment leaves them, steady
     segment 2K+1         the short-path segment (up to two control segments' worth of slots)
 
@@ -16,30 +17,42 @@ Memory layout (segments and steps of the card, fixed when a configuration is app
 The card rests in one of the two idle steps (the *home* step). A plan ends in the *other* one, which
 already loops on itself, so the end of a plan never races the host: with a single idle step the host must
 re-point it at itself before the plan's last slot plays, or a slow host makes the card play the plan twice.
-The next cycle starts from wherever the last one ended (ping-pong).
+The next cycle starts from wherever the last one ended (ping-pong). The card divides its memory into equal
+parts, one per segment, so the largest control segment must fit one part (checked at construction).
 
-A cycle uploads control segments 0 and 1, then points home at control step 0: that is the latency. While
-segment k plays, segment k+2 is rendered and uploaded, and only then are control step k+1 and its failsafe
-pointed at it. If the host is late, the card falls into the failsafe after segment k+1, which holds the
-mobile tweezers where that segment left them (a pause, not a loss), and resumes when the pointer arrives.
+A cycle uploads control segments 0 and 1 (and renders segment 2 under segment 1's DMA), then points home at
+control step 0: that is the latency. From then on the host uploads segment after segment as fast as the DMA
+goes: for segment k it uploads the failsafe (one slot; in memory before anything can lead to it), starts
+the DMA, and while it runs writes segment k's two steps (nothing leads to them yet) and renders segment
+k+1. After the DMA only the *link* remains: control step k-1 pointed at k, and one read of the card's step.
+If the host was late, the card has fallen into failsafe k-1, which holds the mobile tweezers where that
+segment left them (a pause, not a loss); the host then points the failsafe at k too, at once, and counts an
+underrun. Otherwise the failsafe's pointer is written during the next DMA (the card can no longer reach it).
 Each report lists, per underrun, how many slots had played (``failsafe_after_slots``); after playback the
 engine replays them through the move model to record which atoms the failsafe held (``CycleRecord.in_flight``).
 Plans of at most two segments' worth of slots take the short path: one upload, one pointer, no failsafe
 needed. Segments are written at their exact length (no padding to whole segments), so a 20-slot plan
 streams in 20 slots, not 64.
 
-**The worst case, not the mean.** Once playback starts, the host must link segment k+2 before the card
-finishes segment k+1; per segment it needs max(render, DMA) (the DMA of a 32-slot two-channel segment is ~80 %
-of its playback time), so the lead the host keeps is at most the two segments uploaded before the start
-(640 us at 10 us slots) plus a few tens of microseconds gained per segment. A slow render is not what breaks
-this: a host *preempted* for a scheduler slice (milliseconds, when a browser or an analysis script shares the
-engine's core) is. A deeper lead would buy that with latency (every segment uploaded ahead costs its DMA
-before the first slot plays), so instead the streamer keeps the scheduler away: from the first render to the
-plan's last link it runs at real-time priority (``SCHED_FIFO``, ``awg.stream_priority``; the engine enters
-the same window when the frame arrives, so detection and planning are covered too), and drops back to
-normal priority while the card plays the tail and the engine waits for the camera, so it never holds the
-core longer than one plan. Where the OS refuses (no ``CAP_SYS_NICE``/``RLIMIT_RTPRIO``) it streams at
-normal priority and says so (``Streamer.realtime_refused``). Each plan's report carries the smallest slack
+**The worst case, not the mean.** Once playback starts, the host must link segment k before the card
+finishes segment k-1. The DMA is the bottleneck (a 32-slot two-channel segment of 10 us slots uploads in
+~254 us of its 320 us playback at the modelled 1.58 GB/s), so the host gains at most the DMA's spare fifth of
+each segment's playback, less the fixed work per segment (failsafe upload, link, the step read, upload
+jitter), on top of the lead it starts with: the two segments uploaded before the start (640 us). That lead
+costs latency (every segment uploaded ahead costs its DMA before the first slot plays), which is why the first
+two segments stay at ``waveforms_per_segment``. Growing later segments (``segment_growth`` > 1) spreads the
+fixed work over more playback and lets one layout hold longer plans, but it does not deepen the lead: a
+segment is linked only once its whole DMA is done, so a segment g times the size of the one before leaves
+the host (1 - 0.79 g) of the previous segment's playback instead of 0.21, and doubling underruns even in
+replayed time (``tests/test_streaming_adaptive.py``). Measured on the simulated card, growth only lowered
+the least slack, so the default is 1 (``docs/benchmarks.md``, streaming). What breaks the lead is not a slow
+render but a host *stalled* for longer than it: preempted for a scheduler slice (milliseconds, when a
+browser or an analysis script shares the engine's core), so the streamer keeps the scheduler away: from the
+first render to the plan's last link it runs at real-time priority (``SCHED_FIFO``, ``awg.stream_priority``;
+the engine enters the same window when the frame arrives, so detection and planning are covered too), and
+drops back to normal priority while the card plays the tail and the engine waits for the camera, so it never
+holds the core longer than one plan. Where the OS refuses (no ``CAP_SYS_NICE``/``RLIMIT_RTPRIO``) it streams
+at normal priority and says so (``Streamer.realtime_refused``). Each plan's report carries the smallest slack
 the host left the card (``min_slack_s``: how long before the card would have reached a failsafe each link
 arrived), which ``llrs bench streaming`` reports.
 """
@@ -52,8 +65,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.aod_limits import SegmentGuard
 from engine import card_rules
+from engine.aod_limits import SegmentGuard
 from engine.card_rules import page_aligned_zeros
 from engine.config import SystemConfig
 from engine.devices import Clock, SequenceAWG, StepInfo

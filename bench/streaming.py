@@ -50,11 +50,16 @@ def _plans(config: SystemConfig, n: int) -> list[Operations]:
     return [ops for ops in plans if len(ops) > 0]
 
 
-def _sized(config: SystemConfig, waveforms_per_segment: int, longest: int, stream_priority: int) -> SystemConfig:
-    """``config`` with ``waveforms_per_segment`` and enough control segments (and steps) for ``longest`` slots."""
+def _sized(config: SystemConfig, waveforms_per_segment: int, longest: int, stream_priority: int,
+           growth: float = 1.0) -> SystemConfig:
+    """``config`` with ``waveforms_per_segment``, segments growing by ``growth`` (up to the config's
+    ``max_waveforms_per_segment``, or the first segments' size if that is larger), and enough control segments
+    (and steps) for ``longest`` slots."""
     n_control = max(2, -(-longest // waveforms_per_segment))
     awg = config.awg.model_copy(update={
         "waveforms_per_segment": waveforms_per_segment,
+        "segment_growth": growth,
+        "max_waveforms_per_segment": max(waveforms_per_segment, config.awg.max_waveforms_per_segment),
         "n_segments": max(8, 2 * n_control + 2),
         "n_steps": max(8, 2 * (2 * n_control + 2)),
         "stream_priority": stream_priority,
@@ -92,19 +97,22 @@ def stream_plans(config: SystemConfig, plans: list[Operations]) -> list[dict[str
 
 
 def streaming_figures(config: SystemConfig, plans: list[Operations], sizes: tuple[int, ...],
-                      stream_priority: int) -> list[dict[str, Any]]:
-    """Per segment size: DMA and playback time of one segment, underrun probability, slack and latency."""
+                      stream_priority: int, growths: tuple[float, ...] = (1.0,)) -> list[dict[str, Any]]:
+    """Per segment size (of the first two segments) and growth: DMA and playback time of one such segment,
+    underrun probability, slack and latency."""
     longest = max(len(ops) for ops in plans)
     slot_s = config.waveforms.slot_duration_s
     slot_bytes = 2 * round(config.waveforms.sample_rate_hz * slot_s) * (1 if config.array.trap_source == "aod" else 2)
     rows = []
-    for size in sizes:
-        sized = _sized(config, size, longest, stream_priority)
+    for size, growth in ((size, growth) for growth in growths for size in sizes):
+        sized = _sized(config, size, longest, stream_priority, growth)
         reports = stream_plans(sized, plans)
         streamed = [r for r in reports if r["n_segments"] > 2]  # the short path cannot underrun
         slack_us = np.array([r["min_slack_s"] for r in streamed]) * 1e6
         rows.append({
             "waveforms_per_segment": size,
+            "segment_growth": growth,
+            "max_waveforms_per_segment": sized.awg.max_waveforms_per_segment,
             "segment_upload_us": size * slot_bytes / config.awg.upload_bytes_per_s * 1e6,
             "segment_playback_us": size * slot_s * 1e6,
             "max_upload_wait_us": max(r["max_upload_s"] for r in reports) * 1e6,
@@ -123,10 +131,11 @@ def streaming_figures(config: SystemConfig, plans: list[Operations], sizes: tupl
 def _print(problem: str, rows: list[dict[str, Any]], hogs: int) -> None:
     print(f"== {problem}: {rows[0]['plans']} plans per size, {hogs} CPU hogs, "
           f"real-time streaming {'on' if rows[0]['realtime'] else 'off'}")
-    print(f"{'wf/seg':>6s} {'DMA us':>8s} {'play us':>8s} {'P(underrun)':>11s} {'underruns':>9s} "
-          f"{'min slack':>10s} {'p1 slack':>9s} {'latency':>8s}   (us)")
+    print(f"{'wf/seg':>6s} {'growth':>6s} {'DMA us':>8s} {'play us':>8s} {'P(underrun)':>11s} {'underruns':>9s} "
+          f"{'min slack':>10s} {'p1 slack':>9s} {'latency':>8s}   (us; DMA and playback of the first segments)")
     for r in rows:
-        print(f"{r['waveforms_per_segment']:6d} {r['segment_upload_us']:8.1f} {r['segment_playback_us']:8.1f} "
+        print(f"{r['waveforms_per_segment']:6d} {r['segment_growth']:6.2f} {r['segment_upload_us']:8.1f} "
+              f"{r['segment_playback_us']:8.1f} "
               f"{r['underrun_probability']:11.4f} {r['underruns']:9d} {r['min_slack_us']:10.1f} "
               f"{r['p1_slack_us']:9.1f} {r['latency_median_us']:8.1f}")
 
@@ -138,6 +147,7 @@ def plot(rows: list[dict[str, Any]], path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    rows = [r for r in rows if r["segment_growth"] == rows[0]["segment_growth"]]  # the figure: one growth
     sizes = [r["waveforms_per_segment"] for r in rows]
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(sizes, [max(r["underrun_probability"], 1e-4) for r in rows], "o-", label="underrun probability")
@@ -162,6 +172,13 @@ def _cmd(args: argparse.Namespace) -> int:
         sizes = tuple(int(s) for s in args.sizes.split(",") if s.strip())
     except ValueError:
         raise SystemExit(f"llrs bench streaming: --sizes takes comma-separated integers, not {args.sizes!r}") from None
+    try:
+        growths = tuple(float(g) for g in args.growth.split(",") if g.strip())
+    except ValueError:
+        raise SystemExit(f"llrs bench streaming: --growth takes comma-separated numbers, not {args.growth!r}") from None
+    if not growths or min(growths) < 1:
+        raise SystemExit(f"llrs bench streaming: --growth factors must be >= 1 (awg.segment_growth), "
+                         f"got {args.growth!r}")
     config = problem_config(args.problem, seed=args.seed)
     plans = _plans(config, args.plans)
     allowed = os.sched_getaffinity(0) if args.engine_cpu is not None else None
@@ -169,7 +186,7 @@ def _cmd(args: argparse.Namespace) -> int:
         try:
             if args.engine_cpu is not None:
                 os.sched_setaffinity(0, {args.engine_cpu})
-            rows = streaming_figures(config, plans, sizes, args.stream_priority)
+            rows = streaming_figures(config, plans, sizes, args.stream_priority, growths)
         finally:
             if allowed is not None:
                 os.sched_setaffinity(0, allowed)
@@ -188,6 +205,8 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plans", type=int, default=100, help="random fillings to plan and stream per size (default 100)")
     p.add_argument("--sizes", default=",".join(str(s) for s in DEFAULT_SIZES),
                    help="comma-separated waveforms per segment (default %(default)s)")
+    p.add_argument("--growth", default="1",
+                   help="comma-separated awg.segment_growth factors: each size is streamed with each (default 1)")
     p.add_argument("--stream-priority", type=int, default=SystemConfig().awg.stream_priority,
                    help="SCHED_FIFO priority while streaming (0: normal priority; default %(default)s)")
     p.add_argument("--cpu-hogs", type=int, default=0, metavar="N", help="CPU-bound processes to run beside it")

@@ -309,7 +309,22 @@ class AWGConfig(_Model):
 
     n_segments: Annotated[int, Field(ge=8, le=4096)] = 256
     n_steps: Annotated[int, Field(ge=8, le=4096)] = 4096
-    waveforms_per_segment: Annotated[int, Field(ge=1, le=1024)] = 32
+    waveforms_per_segment: Annotated[int, Field(ge=1, le=1024)] = Field(
+        default=32,
+        description="waveform slots of each of the two control segments uploaded before a plan starts (their DMA "
+        "is the streaming part of the latency), and of the first segments streamed after them",
+    )
+    segment_growth: Annotated[float, Field(ge=1, le=4)] = Field(
+        default=1.0,
+        description="each control segment after the second holds this many times the slots of the one before, "
+        "up to max_waveforms_per_segment: larger segments spend the fixed per-segment host work (failsafe "
+        "upload, step words) over more playback and let one layout hold longer plans, but the host links a "
+        "segment only once its whole DMA is done, so a segment that grows faster than the DMA's spare time "
+        "(playback minus upload) eats the lead. 1: every segment waveforms_per_segment slots",
+    )
+    max_waveforms_per_segment: Annotated[int, Field(ge=1, le=65536)] = Field(
+        default=128, description="the most waveform slots one control segment grows to (segment_growth)"
+    )
     upload_bytes_per_s: Annotated[float, Field(ge=1e3, le=1e12)] = 1.58e9
     upload_jitter_s: Annotated[float, Field(ge=0, le=1e-2)] = 5e-6
     step_write_s: Annotated[float, Field(ge=0, le=1e-2)] = 4e-6
@@ -320,6 +335,26 @@ class AWGConfig(_Model):
         "last link, so that a busy core cannot preempt it into an underrun; 0: normal priority. Needs "
         "CAP_SYS_NICE or RLIMIT_RTPRIO; where the OS refuses, plans stream at normal priority",
     )
+
+    @model_validator(mode="after")
+    def _segment_sizes(self) -> AWGConfig:
+        if self.max_waveforms_per_segment < self.waveforms_per_segment:
+            raise ValueError(
+                f"awg.max_waveforms_per_segment = {self.max_waveforms_per_segment} is below awg.waveforms_per_segment "
+                f"= {self.waveforms_per_segment}: segments grow from waveforms_per_segment up to the maximum; raise "
+                "max_waveforms_per_segment (or leave segment_growth at 1)"
+            )
+        return self
+
+    def control_segment_slots(self, n_control: int) -> tuple[int, ...]:
+        """Waveform slots of each of ``n_control`` control segments: two of ``waveforms_per_segment`` (the
+        latency), then growing by ``segment_growth`` up to ``max_waveforms_per_segment``."""
+        slots = [self.waveforms_per_segment] * min(2, n_control)
+        size = float(self.waveforms_per_segment)
+        while len(slots) < n_control:
+            size = min(size * self.segment_growth, float(self.max_waveforms_per_segment))
+            slots.append(int(size))
+        return tuple(slots)
 
 
 class LoopConfig(_Model):

@@ -3,7 +3,8 @@
 Memory layout (segments and steps of the card, fixed when a configuration is applied)::
 
     segment 0            idle: the hold waveform (static tones of a chain, silence for SLM traps)
-    segments 1..K        control segments, ``waveforms_per_segment`` slots each
+    segments 1..K        control segments: the first two ``waveforms_per_segment`` slots each, then each
+                         ``segment_growth`` times the one before, up to ``max_waveforms_per_segment``
     segments K+1..2K     failsafe segments: the tones where the paired control segment leaves them, steady
     segment 2K+1         the short-path segment (up to two control segments' worth of slots)
 
@@ -16,41 +17,55 @@ Memory layout (segments and steps of the card, fixed when a configuration is app
 The card rests in one of the two idle steps (the *home* step). A plan ends in the *other* one, which
 already loops on itself, so the end of a plan never races the host: with a single idle step the host must
 re-point it at itself before the plan's last slot plays, or a slow host makes the card play the plan twice.
-The next cycle starts from wherever the last one ended (ping-pong).
+The next cycle starts from wherever the last one ended (ping-pong). The card divides its memory into equal
+parts, one per segment, so the largest control segment must fit one part (checked at construction).
 
-A cycle uploads control segments 0 and 1, then points home at control step 0: that is the latency. While
-segment k plays, segment k+2 is rendered and uploaded, and only then are control step k+1 and its failsafe
-pointed at it. If the host is late, the card falls into the failsafe after segment k+1, which holds the
-mobile tweezers where that segment left them (a pause, not a loss), and resumes when the pointer arrives.
+A cycle uploads control segments 0 and 1 (and renders segment 2 under segment 1's DMA), then points home at
+control step 0: that is the latency. From then on the host uploads segment after segment as fast as the DMA
+goes: for segment k it uploads the failsafe (one slot; in memory before anything can lead to it), starts
+the DMA, and while it runs writes segment k's two steps (nothing leads to them yet) and renders segment
+k+1. After the DMA only the *link* remains: control step k-1 pointed at k, and one read of the card's step.
+If the host was late, the card has fallen into failsafe k-1, which holds the mobile tweezers where that
+segment left them (a pause, not a loss); the host then points the failsafe at k too, at once, and counts an
+underrun. Otherwise the failsafe's pointer is written during the next DMA (the card can no longer reach it).
 Each report lists, per underrun, how many slots had played (``failsafe_after_slots``); after playback the
 engine replays them through the move model to record which atoms the failsafe held (``CycleRecord.in_flight``).
 Plans of at most two segments' worth of slots take the short path: one upload, one pointer, no failsafe
 needed. Segments are written at their exact length (no padding to whole segments), so a 20-slot plan
 streams in 20 slots, not 64.
 
-**The worst case, not the mean.** Once playback starts, the host must link segment k+2 before the card
-finishes segment k+1; per segment it needs max(render, DMA) (the DMA of a 32-slot two-channel segment is ~80 %
-of its playback time), so the lead the host keeps is at most the two segments uploaded before the start
-(640 us at 10 us slots) plus a few tens of microseconds gained per segment. A slow render is not what breaks
-this: a host *preempted* for a scheduler slice (milliseconds, when a browser or an analysis script shares the
-engine's core) is. A deeper lead would buy that with latency (every segment uploaded ahead costs its DMA
-before the first slot plays), so instead the streamer keeps the scheduler away: from the first render to the
-plan's last link it runs at real-time priority (``SCHED_FIFO``, ``awg.stream_priority``; the engine enters
-the same window when the frame arrives, so detection and planning are covered too), and drops back to
-normal priority while the card plays the tail and the engine waits for the camera, so it never holds the
-core longer than one plan. Where the OS refuses (no ``CAP_SYS_NICE``/``RLIMIT_RTPRIO``) it streams at
-normal priority and says so (``Streamer.realtime_refused``). Each plan's report carries the smallest slack
+**The worst case, not the mean.** Once playback starts, the host must link segment k before the card
+finishes segment k-1. The DMA is the bottleneck (a 32-slot two-channel segment of 10 us slots uploads in
+~254 us of its 320 us playback at the modelled 1.58 GB/s), so the host gains at most the DMA's spare fifth of
+each segment's playback, less the fixed work per segment (failsafe upload, link, the step read, upload
+jitter), on top of the lead it starts with: the two segments uploaded before the start (640 us). That lead
+costs latency (every segment uploaded ahead costs its DMA before the first slot plays), which is why the first
+two segments stay at ``waveforms_per_segment``. Growing later segments (``segment_growth`` > 1) spreads the
+fixed work over more playback and lets one layout hold longer plans, but it does not deepen the lead: a
+segment is linked only once its whole DMA is done, so a segment g times the size of the one before leaves
+the host (1 - 0.79 g) of the previous segment's playback instead of 0.21, and doubling underruns even in
+replayed time (``tests/test_streaming_adaptive.py``). Measured on the simulated card, growth only lowered
+the least slack, so the default is 1 (``docs/benchmarks.md``, streaming). What breaks the lead is not a slow
+render but a host *stalled* for longer than it: preempted for a scheduler slice (milliseconds, when a
+browser or an analysis script shares the engine's core), so the streamer keeps the scheduler away: from the
+first render to the plan's last link it runs at real-time priority (``SCHED_FIFO``, ``awg.stream_priority``;
+the engine enters the same window when the frame arrives, so detection and planning are covered too), and
+drops back to normal priority while the card plays the tail and the engine waits for the camera, so it never
+holds the core longer than one plan. Where the OS refuses (no ``CAP_SYS_NICE``/``RLIMIT_RTPRIO``) it streams
+at normal priority and says so (``Streamer.realtime_refused``). Each plan's report carries the smallest slack
 the host left the card (``min_slack_s``: how long before the card would have reached a failsafe each link
 arrived), which ``llrs bench streaming`` reports.
 """
 
 from __future__ import annotations
 
+import bisect
 import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from engine import card_rules
 from engine.aod_limits import SegmentGuard
 from engine.card_rules import page_aligned_zeros
 from engine.config import SystemConfig
@@ -64,23 +79,46 @@ __all__ = ["RealtimeScheduling", "SequenceLayout", "StreamReport", "Streamer"]
 
 @dataclass(frozen=True)
 class SequenceLayout:
-    """Where everything lives in the card's memory (see the module docstring)."""
+    """Where everything lives in the card's memory (see the module docstring), and how many waveform slots
+    each control segment holds (``AWGConfig.control_segment_slots``)."""
 
-    n_control: int
+    segment_slots: tuple[int, ...]
     idle_segment: int = 0
     idle_step: int = 0
+    slot_offsets: tuple[int, ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "slot_offsets", tuple(int(x) for x in np.cumsum((0, *self.segment_slots))))
 
     @classmethod
     def for_config(cls, config: SystemConfig) -> SequenceLayout:
         n_control = (config.awg.n_segments - 2) // 2
         if n_control < 2:
             raise ValueError(f"awg.n_segments = {config.awg.n_segments} leaves fewer than 2 control segments")
-        layout = cls(n_control=n_control)
+        layout = cls(segment_slots=config.awg.control_segment_slots(n_control))
         if layout.park_step >= config.awg.n_steps:
             raise ValueError(
                 f"the sequence layout needs {layout.park_step + 1} steps but awg.n_steps is {config.awg.n_steps}"
             )
         return layout
+
+    @property
+    def n_control(self) -> int:
+        return len(self.segment_slots)
+
+    @property
+    def max_slots(self) -> int:
+        """The longest plan the layout holds (waveform slots)."""
+        return self.slot_offsets[-1]
+
+    def segments_for(self, n_slots: int) -> int:
+        """How many control segments a plan of ``n_slots`` fills (the last one partly)."""
+        return bisect.bisect_left(self.slot_offsets, n_slots)
+
+    def segment_span(self, k: int, n_slots: int) -> tuple[int, int]:
+        """The first slot of control segment k in a plan of ``n_slots``, and how many slots it holds."""
+        first = self.slot_offsets[k]
+        return first, min(self.segment_slots[k], n_slots - first)
 
     def control_segment(self, k: int) -> int:
         return 1 + k
@@ -113,12 +151,12 @@ class SequenceLayout:
     def is_failsafe_step(self, step: int) -> bool:
         return 2 <= step <= 2 * self.n_control and step % 2 == 0
 
-    def slots_before_failsafe(self, step: int, slots_per_segment: int) -> int:
+    def slots_before_failsafe(self, step: int) -> int:
         """How many of a plan's slots the card has played when it loops failsafe ``step``: all of control
         segments 0..j, where j is the segment the failsafe holds (every segment but the last is full)."""
         if not self.is_failsafe_step(step):
             raise ValueError(f"step {step} is not a failsafe step of this layout")
-        return (step // 2) * slots_per_segment
+        return self.slot_offsets[step // 2]
 
 
 @dataclass
@@ -180,29 +218,38 @@ class Streamer:
         self.awg = awg
         self.clock = clock
         self.layout = SequenceLayout.for_config(config)
-        self.slots_per_segment = config.awg.waveforms_per_segment
+        self.slots_per_segment = config.awg.waveforms_per_segment  # of the first two segments and the short path
         self.timeout_s = 1.0
         self.home = self.layout.idle_step  # the idle step the card rests in between plans
         self.realtime = RealtimeScheduling(config.awg.stream_priority)
         slot = bank.slot_samples
         ch = bank.n_channels
+        largest = max(self.layout.segment_slots)
         # two segment buffers: the host renders segment k+1 into one while the card's DMA reads segment k;
         # page-aligned, so the card's DMA reads them in place (engine/card_rules.py)
-        self._segment_bufs = [page_aligned_zeros((self.slots_per_segment * slot, ch), np.int16) for _ in range(2)]
+        self._segment_bufs = [page_aligned_zeros((largest * slot, ch), np.int16) for _ in range(2)]
         self._short_buf = page_aligned_zeros((2 * self.slots_per_segment * slot, ch), np.int16)
         self._failsafe_buf = page_aligned_zeros((slot, ch), np.int16)
-        self._keys = np.zeros(bank.max_keys(2 * self.slots_per_segment), dtype=np.int64)
+        self._keys = np.zeros(bank.max_keys(max(2 * self.slots_per_segment, largest)), dtype=np.int64)
         self._rf_guard = SegmentGuard(config.channel_limits(), slot)
         # idle + K control + K failsafe + the short-path segment, at their largest
-        total = (
-            self._failsafe_buf.nbytes
-            + self.layout.n_control * (self._segment_bufs[0].nbytes + self._failsafe_buf.nbytes)
-            + self._short_buf.nbytes
-        )
+        slot_bytes = self._failsafe_buf.nbytes
+        total = slot_bytes * (1 + self.layout.max_slots + self.layout.n_control + 2 * self.slots_per_segment)
         if total > config.awg.max_memory_bytes:
             raise ValueError(
                 f"the sequence layout needs {total / 2**20:.0f} MiB of AWG memory but awg.max_memory_bytes is "
-                f"{config.awg.max_memory_bytes / 2**20:.0f} MiB; lower awg.n_segments or waveforms_per_segment"
+                f"{config.awg.max_memory_bytes / 2**20:.0f} MiB; lower awg.n_segments, waveforms_per_segment or "
+                "max_waveforms_per_segment"
+            )
+        # the card splits its memory into equal parts, one per segment: the longest segment must fit one
+        longest = max(largest, 2 * self.slots_per_segment) * slot
+        fits = card_rules.max_segment_samples(config.awg.max_memory_bytes, ch, config.awg.n_segments)
+        if longest > fits:
+            raise ValueError(
+                f"the longest segment of the layout ({longest} samples per channel) is longer than one of the "
+                f"{card_rules.segment_partition(config.awg.n_segments)} equal parts the card divides its "
+                f"{config.awg.max_memory_bytes / 2**20:.0f} MiB into ({fits} samples); lower "
+                "awg.max_waveforms_per_segment (or waveforms_per_segment) or awg.n_segments"
             )
 
     @property
@@ -212,7 +259,7 @@ class Streamer:
 
     @property
     def max_slots(self) -> int:
-        return self.layout.n_control * self.slots_per_segment
+        return self.layout.max_slots
 
     def program_idle(self) -> None:
         """Upload the hold waveform and make both idle steps loop on it (done when a configuration is applied)."""
@@ -254,8 +301,9 @@ class Streamer:
         if n > self.max_slots:
             raise ValueError(
                 f"the plan has {n} waveform slots but the AWG layout holds at most {self.max_slots} "
-                f"({self.layout.n_control} control segments x {self.slots_per_segment}); "
-                "raise awg.n_segments or awg.waveforms_per_segment"
+                f"({self.layout.n_control} control segments of {self.slots_per_segment} to "
+                f"{max(self.layout.segment_slots)} slots); raise awg.n_segments, awg.segment_growth or "
+                "awg.max_waveforms_per_segment"
             )
         self.realtime.enter()
         try:
@@ -326,88 +374,105 @@ class Streamer:
     def _slot_s(self) -> float:
         return self.bank.slot_samples / self.awg.sample_rate_hz
 
-    def _render_segment(self, ops: Operations, k: int, timer: StageTimer | None) -> int:
-        """Look up and render control segment k into buffer ``k % 2``; returns its number of slots."""
-        first = k * self.slots_per_segment
-        count = min(self.slots_per_segment, len(ops) - first)
+    def _render_segment(self, ops: Operations, k: int, timer: StageTimer | None) -> None:
+        """Look up and render control segment k into buffer ``k % 2``, and the failsafe that follows it (the
+        tones where its last slot leaves them) into the failsafe buffer (the last segment has none)."""
+        first, count = self.layout.segment_span(k, len(ops))
         self._lookup_and_render(ops, first, count, self._segment_bufs[k % 2], timer)
-        return count
+        if first + count < len(ops):
+            self.bank.render_failsafe(ops, first + count - 1, self._failsafe_buf)
 
-    def _start_upload(self, k: int, count: int) -> None:
-        buf = self._segment_bufs[k % 2]
-        self.awg.start_upload(self.layout.control_segment(k), buf[: count * self.bank.slot_samples])
-
-    def _render_failsafe(self, ops: Operations, k: int, count: int, n_segments: int) -> None:
-        """Render control segment k's failsafe (the tones where its last slot leaves them) while its DMA runs,
-        so that only the failsafe's own upload and the step words follow the DMA (the last segment has none)."""
-        if k < n_segments - 1:
-            self.bank.render_failsafe(ops, k * self.slots_per_segment + count - 1, self._failsafe_buf)
-
-    def _finish_upload(self, k: int, n_segments: int, report: StreamReport) -> None:
-        """Wait for control segment k's DMA, upload its failsafe (rendered by ``_render_failsafe``), and
-        point its step at the failsafe (or at the plan's end step)."""
+    def _upload(self, ops: Operations, k: int) -> None:
+        """Upload control segment k's failsafe (one slot; it must be in memory before the step that leads to
+        it can be reached), start the DMA of control segment k, and, while that runs, write the steps of
+        segment k: nothing leads to them until ``_link(k)``, so only the link is left for after the DMA."""
         lay = self.layout
-        t_wait = self.clock.now_s()
-        self.awg.wait_upload(timeout_s=self.timeout_s)
-        report.max_upload_s = max(report.max_upload_s, self.clock.now_s() - t_wait)
-        last = k == n_segments - 1
+        first, count = lay.segment_span(k, len(ops))
+        last = first + count == len(ops)
         if not last:
             self.awg.write_segment(lay.failsafe_segment(k), self._failsafe_buf)
+        self.awg.start_upload(lay.control_segment(k), self._segment_bufs[k % 2][: count * self.bank.slot_samples])
+        if not last:
             self.awg.write_step(
                 lay.failsafe_step(k), StepInfo(segment=lay.failsafe_segment(k), next_step=lay.failsafe_step(k))
             )
         next_step = self.away if last else lay.failsafe_step(k)
         self.awg.write_step(lay.control_step(k), StepInfo(segment=lay.control_segment(k), next_step=next_step))
 
-    def _link(self, k: int) -> None:
-        """Point control step k-1 and its failsafe at control step k (segment k is in memory)."""
+    def _wait_upload(self, report: StreamReport) -> None:
+        t_wait = self.clock.now_s()
+        self.awg.wait_upload(timeout_s=self.timeout_s)
+        report.max_upload_s = max(report.max_upload_s, self.clock.now_s() - t_wait)
+
+    def _link(self, k: int, report: StreamReport) -> bool:
+        """Point control step k-1 at control step k (segment k is in memory), then look where the card is:
+        if it has already fallen into failsafe k-1 (an underrun: counted, with the slots it had played),
+        point that at k as well at once and return True. Otherwise the card leaves k-1 for k and never sees
+        the failsafe, whose pointer ``_link_failsafe`` writes later, off the critical path."""
         lay = self.layout
-        nxt = lay.control_step(k)
-        self.awg.write_step(lay.control_step(k - 1), StepInfo(segment=lay.control_segment(k - 1), next_step=nxt))
-        self.awg.write_step(lay.failsafe_step(k - 1), StepInfo(segment=lay.failsafe_segment(k - 1), next_step=nxt))
+        self._link_control(k)
+        step = self.awg.current_step()
+        if not lay.is_failsafe_step(step):
+            return False
+        report.underruns += 1
+        report.failsafe_after_slots.append(lay.slots_before_failsafe(step))
+        self._link_failsafe(k)
+        return True
+
+    def _link_control(self, k: int) -> None:
+        """Point control step k-1 at control step k."""
+        lay = self.layout
+        self.awg.write_step(
+            lay.control_step(k - 1), StepInfo(segment=lay.control_segment(k - 1), next_step=lay.control_step(k))
+        )
+
+    def _link_failsafe(self, k: int) -> None:
+        """Point failsafe step k-1 at control step k: once the card is in it, it leaves for segment k."""
+        lay = self.layout
+        self.awg.write_step(
+            lay.failsafe_step(k - 1), StepInfo(segment=lay.failsafe_segment(k - 1), next_step=lay.control_step(k))
+        )
 
     def _stream_segments(self, ops: Operations, report: StreamReport, timer: StageTimer | None) -> None:
-        """Segments 0 and 1 before playback starts, then one segment ahead of the card; every DMA overlaps
-        the rendering of the next segment."""
+        """Segments 0 and 1 before playback starts (and segment 2 rendered under segment 1's DMA), then as
+        far ahead of the card as the DMA goes; every DMA overlaps the rendering of the next segment."""
         lay = self.layout
-        n_segments = -(-len(ops) // self.slots_per_segment)
+        n_segments = lay.segments_for(len(ops))
         report.n_segments = n_segments
         t0 = self.clock.now_s()
         if timer is not None:
             timer.start()
-        count0 = self._render_segment(ops, 0, timer)
-        self._start_upload(0, count0)
+        self._render_segment(ops, 0, timer)
+        self._upload(ops, 0)
         if timer is not None:
             timer.lap("IV.upload")
-        count1 = self._render_segment(ops, 1, timer)  # while segment 0 uploads
-        self._render_failsafe(ops, 0, count0, n_segments)
-        self._finish_upload(0, n_segments, report)
-        self._start_upload(1, count1)
-        self._render_failsafe(ops, 1, count1, n_segments)
-        self._finish_upload(1, n_segments, report)
-        self._link(1)
+        self._render_segment(ops, 1, timer)  # while segment 0 uploads
+        self._wait_upload(report)
+        self._upload(ops, 1)
+        self._render_segment(ops, 2, None)  # while segment 1 uploads: ready to go when playback starts
+        self._wait_upload(report)
+        self._link_control(1)  # the card is still at home: no failsafe to look at yet
+        self._link_failsafe(1)
         if timer is not None:
             timer.lap("IV.upload")
         self._start(lay.control_step(0), report, t0)
         if timer is not None:
             timer.lap("IV.sequence")
-        if n_segments > 2:
-            segment_s = self.slots_per_segment * self._slot_s()
-            count = self._render_segment(ops, 2, None)
-            for k in range(2, n_segments):
-                self._start_upload(k, count)
-                count_next = self._render_segment(ops, k + 1, None) if k + 1 < n_segments else 0
-                self._render_failsafe(ops, k, count, n_segments)
-                self._finish_upload(k, n_segments, report)
-                if report.underruns == 0:  # segments 0..k-1 played without pause: the card leaves k-1 then
-                    slack_s = report.t_started_s + k * segment_s - self.clock.now_s()
-                    report.min_slack_s = min(report.min_slack_s, slack_s)
-                step = self.awg.current_step()
-                if lay.is_failsafe_step(step):
-                    report.underruns += 1
-                    report.failsafe_after_slots.append(lay.slots_before_failsafe(step, self.slots_per_segment))
-                self._link(k)
-                count = count_next
+        slot_s = self._slot_s()
+        unlinked_failsafe = 0  # the segment whose failsafe pointer is still to write (0: none)
+        for k in range(2, n_segments):
+            self._upload(ops, k)
+            if unlinked_failsafe:  # while segment k uploads
+                self._link_failsafe(unlinked_failsafe)
+            if k + 1 < n_segments:
+                self._render_segment(ops, k + 1, None)
+            self._wait_upload(report)
+            if report.underruns == 0:  # segments 0..k-1 played without pause: the card leaves k-1 then
+                slack_s = report.t_started_s + lay.slot_offsets[k] * slot_s - self.clock.now_s()
+                report.min_slack_s = min(report.min_slack_s, slack_s)
+            unlinked_failsafe = 0 if self._link(k, report) else k
+        if unlinked_failsafe:
+            self._link_failsafe(unlinked_failsafe)
         self._finish(len(ops))
         if timer is not None:
             timer.lap("V.stream")

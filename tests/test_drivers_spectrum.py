@@ -386,16 +386,19 @@ class _Clock:
         return time.monotonic()
 
 
+@pytest.mark.parametrize("segment_growth", [1.0, 2.0])
 @pytest.mark.parametrize("passes_per_dma", [0, 1, 3])
-def test_the_streamers_uploads_and_pointer_updates_obey_the_card(passes_per_dma: int) -> None:
+def test_the_streamers_uploads_and_pointer_updates_obey_the_card(passes_per_dma: int, segment_growth: float) -> None:
     """Plans streamed back to back through the real ``engine.streaming.Streamer``: the card never plays a
     segment being written or a step whose segment is stale, never plays a previous plan's data, and plays
-    every slot once, in order, through the failsafe steps when the host is late."""
+    every slot once, in order, through the failsafe steps when the host is late; with growing control segments
+    (4, 4, 8, 16 slots) as with equal ones."""
     try:
         from engine.streaming import Streamer
     except Exception as err:  # noqa: BLE001 - the engine is being finished elsewhere; this test needs only streaming
         pytest.skip(f"engine.streaming does not import yet: {err}")
-    config = config_from_dict({"awg": {"n_segments": 16, "n_steps": 64, "waveforms_per_segment": 4}})
+    config = config_from_dict({"awg": {"n_segments": 16, "n_steps": 64, "waveforms_per_segment": 4,
+                                       "segment_growth": segment_growth, "max_waveforms_per_segment": 16}})
     awg, card = open_awg(passes_per_dma=passes_per_dma)
     streamer = Streamer(config, _Bank(), awg, _Clock())  # type: ignore[arg-type]
     lay = streamer.layout

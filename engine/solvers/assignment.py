@@ -50,7 +50,7 @@ class AssignmentPlanner:
         m = max(nx, ny)
         self._occ0 = np.zeros((ny, nx), dtype=np.bool_)
         self._occ = np.zeros((ny, nx), dtype=np.bool_)
-        self._blocked = np.zeros((ny, nx), dtype=np.bool_)
+        self._blocked = np.zeros((ny, nx), dtype=np.int64)
         self._src_mark = np.zeros((ny, nx), dtype=np.bool_)
         self._dst_mark = np.zeros((ny, nx), dtype=np.bool_)
         self._done = np.zeros(nx * ny, dtype=np.bool_)

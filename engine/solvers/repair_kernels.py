@@ -61,14 +61,12 @@ def pair_costs(
                 cost[h, f] = steps
                 continue
             lo_c = min(c0, c1)
-            hi_c = max(c0, c1)
+            hi_c = max(c0, c1) + 1
             lo_r = min(r0, r1)
-            hi_r = max(r0, r1)
-            ends = occ[r0, c0] + occ[r1, c1]
-            row_first = (row_cum[r0, hi_c + 1] - row_cum[r0, lo_c]) + (col_cum[hi_r + 1, c1] - col_cum[lo_r, c1])
-            row_first -= ends + occ[r0, c1]
-            col_first = (col_cum[hi_r + 1, c0] - col_cum[lo_r, c0]) + (row_cum[r1, hi_c + 1] - row_cum[r1, lo_c])
-            col_first -= ends + occ[r1, c0]
+            hi_r = max(r0, r1) + 1
+            # each segment counts its ends: take out the spare atom (occupied), the hole (empty) and the corner
+            row_first = row_cum[r0, hi_c] - row_cum[r0, lo_c] + col_cum[hi_r, c1] - col_cum[lo_r, c1] - 1 - occ[r0, c1]
+            col_first = col_cum[hi_r, c0] - col_cum[lo_r, c0] + row_cum[r1, hi_c] - row_cum[r1, lo_c] - 1 - occ[r1, c0]
             moved = 1.0 + min(row_first, col_first)
             if objective == 1:
                 cost[h, f] = moved

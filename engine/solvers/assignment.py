@@ -50,7 +50,7 @@ class AssignmentPlanner:
         m = max(nx, ny)
         self._occ0 = np.zeros((ny, nx), dtype=np.bool_)
         self._occ = np.zeros((ny, nx), dtype=np.bool_)
-        self._blocked = np.zeros((ny, nx), dtype=np.bool_)
+        self._blocked = np.zeros((ny, nx), dtype=np.int64)
         self._src_mark = np.zeros((ny, nx), dtype=np.bool_)
         self._dst_mark = np.zeros((ny, nx), dtype=np.bool_)
         self._done = np.zeros(nx * ny, dtype=np.bool_)
@@ -144,13 +144,18 @@ class AssignmentPlanner:
         if not self._solved:
             raise RuntimeError("batch() needs a successful solve_moves() first")
         hops = self._hops
-        n_hops = len(hops)
-        n_cells = sum(len(h) for h in hops)
-        hop_ptr = np.zeros(n_hops + 1, dtype=np.int64)
+        hop_ptr = np.zeros(len(hops) + 1, dtype=np.int64)
         hop_ptr[1:] = np.cumsum([len(h) for h in hops])
-        cells = np.array([site for h in hops for site in h], dtype=np.int64).reshape(n_cells, 2)
+        cells = np.array([site for h in hops for site in h], dtype=np.int64).reshape(-1, 2)
         group_ptr = np.asarray(self._groups, dtype=np.int64)
-        n_groups = group_ptr.size - 1
+        return self._batch_hops(hop_ptr, len(hops), cells, group_ptr, group_ptr.size - 1)
+
+    def _batch_hops(
+        self, hop_ptr: np.ndarray, n_hops: int, cells: np.ndarray, group_ptr: np.ndarray, n_groups: int
+    ) -> Plan:
+        """Batch and emit hop ``k``'s path ``cells[hop_ptr[k]:hop_ptr[k + 1]]`` for ``k < n_hops``, in groups
+        ``group_ptr[:n_groups + 1]`` (the arrays may be longer: preallocated)."""
+        n_cells = int(hop_ptr[n_hops])
         if self._done.size < n_groups:
             self._done = np.zeros(2 * n_groups, dtype=np.bool_)
         if self._members.size < n_hops:

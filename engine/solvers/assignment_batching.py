@@ -78,8 +78,18 @@ def batch_hops(
     come in *groups* ``group_ptr[g]:group_ptr[g + 1]`` that always run together: a relay along one row
     (or column), every atom moving to where the next one starts, the front one first in the list; such a
     group shares one row (column) tone, so its atoms are exactly its product set. ``members`` holds the
-    hops taken into the current batch; the scratch arrays are ``occ``-shaped."""
+    hops taken into the current batch; the scratch arrays are ``occ``-shaped, ``blocked`` holds the number
+    (from 1) of the batch that last blocked a trap, so it is cleared once per call, not once per batch.
+    A group is tested cheaply first (rows and columns where the batch's atoms start, its sources, the
+    pairwise checks); only one that passes needs the traps of the groups turned down before it blocked,
+    so they are marked then, not as each is turned down: in a filled band almost every group is turned down
+    and marking each one's traps made the scan quadratic in traps. The batches are the same either way."""
+    ny, nx = occ.shape
+    row_used = np.zeros(ny, dtype=np.bool_)
+    col_used = np.zeros(nx, dtype=np.bool_)
+    failed = np.empty(max(n_groups, 1), dtype=np.int64)  # groups this batch turned down, in scan order
     occ[:, :] = occ0
+    blocked[:, :] = 0
     for g in range(n_groups):
         done[g] = False
     n_batches = 0
@@ -91,7 +101,9 @@ def batch_hops(
             first += 1
         if first >= n_groups:
             break
-        blocked[:, :] = False
+        stamp = n_batches + 1
+        n_failed = 0
+        n_marked = 0
         n_mem = 0
         l_max = 0
         scanned = 0
@@ -107,23 +119,29 @@ def batch_hops(
             for k in range(h0, h1):
                 length = max(length, hop_ptr[k + 1] - hop_ptr[k] - 1)
             fits = n_mem == 0 or length <= max(l_max, 1) + extend
-            for k in range(h0, h1):  # footprint untouched by the earlier groups this batch overtakes
-                if not fits:
-                    break
-                for p in range(hop_ptr[k], hop_ptr[k + 1]):
-                    if blocked[cells[p, 0], cells[p, 1]]:
-                        fits = False
-                        break
-            for k in range(h0, h1):
+            for k in range(h0, h1):  # the cheap tests first: rows and columns, the sources, the pairs
                 if not fits:
                     break
                 p0 = hop_ptr[k]
-                if not occ[cells[p0, 0], cells[p0, 1]]:
+                if row_used[cells[p0, 0]] or col_used[cells[p0, 1]] or not occ[cells[p0, 0], cells[p0, 1]]:
                     fits = False
                 for i in range(n_mem):
                     if not fits:
                         break
                     fits = _pair_ok(k, members[i], hop_ptr, cells, occ)
+            if fits:  # block the traps of the groups turned down so far (lazily: most groups never get here)
+                for i in range(n_marked, n_failed):
+                    f = failed[i]
+                    for p in range(hop_ptr[group_ptr[f]], hop_ptr[group_ptr[f + 1]]):
+                        blocked[cells[p, 0], cells[p, 1]] = stamp
+                n_marked = n_failed
+            for k in range(h0, h1):  # footprint untouched by the earlier groups this batch overtakes
+                if not fits:
+                    break
+                for p in range(hop_ptr[k], hop_ptr[k + 1]):
+                    if blocked[cells[p, 0], cells[p, 1]] == stamp:
+                        fits = False
+                        break
             if fits:
                 for k in range(h0, h1):
                     src_mark[cells[hop_ptr[k], 0], cells[hop_ptr[k], 1]] = True
@@ -147,13 +165,14 @@ def batch_hops(
                     n_mem += 1
                     p1 = hop_ptr[k + 1]
                     dst_mark[cells[p1 - 1, 0], cells[p1 - 1, 1]] = True
+                    row_used[cells[hop_ptr[k], 0]] = True
+                    col_used[cells[hop_ptr[k], 1]] = True
                 if length > l_max:
                     l_max = length
                 done[g] = True
             else:
-                for k in range(h0, h1):
-                    for p in range(hop_ptr[k], hop_ptr[k + 1]):
-                        blocked[cells[p, 0], cells[p, 1]] = True
+                failed[n_failed] = g
+                n_failed += 1
             g += 1
         if n_mem == 0:
             return -1  # the first group left cannot run: the hops were not in a valid sequential order
@@ -163,6 +182,8 @@ def batch_hops(
             p1 = hop_ptr[j + 1]
             src_mark[cells[p0, 0], cells[p0, 1]] = False
             dst_mark[cells[p1 - 1, 0], cells[p1 - 1, 1]] = False
+            row_used[cells[p0, 0]] = False
+            col_used[cells[p0, 1]] = False
             occ[cells[p0, 0], cells[p0, 1]] = False
         for i in range(n_mem):
             j = members[i]

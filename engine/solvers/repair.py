@@ -34,15 +34,20 @@ Not a bulk planner: on a freshly loaded 32 x 64 array (about 410 holes in a 32 x
 atoms in 3,500-4,200 slots, beyond the examples' AWG layout (4,064 slots) in about 1 shot in 10, where red-rec
 takes ~950 pick-ups in ~800 slots. Use it behind a bulk planner (``solver.strategy``).
 
-Everything but the pair cost is the assignment planner's (``engine/solvers/assignment.py``).
+Planning runs in numba kernels over preallocated arrays (``repair_kernels``: pair costs, a
+shortest-augmenting-path assignment, routes, relays, merging), then the assignment planner's batching; the
+plain-Python path (``reference_hops``: scipy's ``linear_sum_assignment`` and the assignment planner's list
+routing) is kept as the kernels' reference in the tests and gives the same plans.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from engine.operations import Plan
 from engine.solvers.assignment import AssignmentPlanner
-from engine.solvers.base import LossWeights
+from engine.solvers.base import LossWeights, UnsolvableError
+from engine.solvers.repair_kernels import OBJECTIVE_CODES, plan_repair
 
 __all__ = ["RepairPlanner", "route_atoms"]
 
@@ -87,14 +92,92 @@ class RepairPlanner(AssignmentPlanner):
             raise ValueError(f"objective must be slots, transfers or survival (got {objective!r})")
         self.objective = objective
         self.loss = loss or LossWeights()
+        self._alloc(nx, ny, holes=64, free=256)
         super().__init__(nx, ny, trap_source=trap_source)
         self._plan.algorithm = "repair"
+        # Look 32 groups ahead, not 256: in a filled band the relays' tone crossings are occupied traps, so a
+        # group almost never joins a batch far ahead, and the scan of every batch over every group left was
+        # the batching's cost (64 holes on 32 x 64: ~90 groups, ~90 batches). The same batches as 256 on 300
+        # instances of up to 64 holes; 16 changed one.
+        self.window = 32
+
+    def _alloc(self, nx: int, ny: int, *, holes: int, free: int) -> None:
+        """The kernels' arrays for up to ``holes`` holes and ``free`` free atoms (grown on demand, doubled)."""
+        self._cap = (holes, free)
+        per_path = 2 * (nx + ny)  # cells of one pair's hops: its path plus one repeated cell per hop, at most
+        self._k_occ = np.zeros((ny, nx), dtype=np.bool_)
+        self._k_free = np.zeros((free, 2), dtype=np.int64)
+        self._k_holes = np.zeros((holes, 2), dtype=np.int64)
+        self._k_row_cum = np.zeros((ny, nx + 1), dtype=np.int64)
+        self._k_col_cum = np.zeros((ny + 1, nx), dtype=np.int64)
+        self._k_cost = np.zeros((holes, free), dtype=np.float64)
+        self._k_lsa_f = np.zeros((3, free), dtype=np.float64)
+        self._k_lsa_i = np.zeros((5, max(holes, free)), dtype=np.int64)
+        self._k_in_sr = np.zeros(holes, dtype=np.bool_)
+        self._k_in_sc = np.zeros(free, dtype=np.bool_)
+        self._k_route = np.zeros((nx + ny, 2), dtype=np.int64)
+        self._k_route_alt = np.zeros((nx + ny, 2), dtype=np.int64)
+        self._k_hop_ptr = np.zeros(holes * per_path + 1, dtype=np.int64)
+        self._k_cells = np.zeros((holes * per_path, 2), dtype=np.int64)
+        self._k_group_ptr = np.zeros(holes * per_path + 1, dtype=np.int64)
+        self._k_last_touch = np.zeros((ny, nx), dtype=np.int64)
+        self._k_merged_of = np.zeros(holes * per_path, dtype=np.int64)
+        self._k_keys = np.zeros((holes * per_path, 3), dtype=np.int64)
+        self._k_created_by = np.zeros(holes * per_path, dtype=np.int64)
+        self._out_hop_ptr = np.zeros(holes * per_path + 1, dtype=np.int64)
+        self._out_cells = np.zeros((holes * per_path, 2), dtype=np.int64)
+        self._out_group_ptr = np.zeros(holes * per_path + 1, dtype=np.int64)
+        self._n_hops = 0
+        self._n_groups = 0
 
     def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
-        """Assign, reroute, then put repairs whose paths line up into shared groups; returns the steps."""
-        n_steps = super().solve_moves(occupancy, target)
-        self._merge_aligned()
+        """Assign, reroute, then put repairs whose paths line up into shared groups (``repair_kernels``);
+        returns the steps."""
+        if occupancy.shape != (self.ny, self.nx) or target.shape != (self.ny, self.nx):
+            raise ValueError(f"occupancy {occupancy.shape} and target {target.shape} must both be {(self.ny, self.nx)}")
+        self._solved = False
+        occ = occupancy if occupancy.dtype == np.bool_ else occupancy.astype(bool)
+        tgt = target if target.dtype == np.bool_ else target.astype(bool)
+        n_atoms = int(np.count_nonzero(occ))
+        n_holes = int(np.count_nonzero(tgt)) - int(np.count_nonzero(occ & tgt))
+        n_free = n_atoms - (int(np.count_nonzero(tgt)) - n_holes)
+        if n_free < n_holes:
+            raise UnsolvableError(f"{n_atoms} atoms cannot fill {int(tgt.sum())} target traps")
+        if n_holes > self._cap[0] or n_free > self._cap[1]:
+            self._alloc(self.nx, self.ny, holes=max(n_holes, 2 * self._cap[0]), free=max(n_free, 2 * self._cap[1]))
+        self._occ0[:] = occ
+        w = self.loss
+        n_hops, n_groups, n_steps = plan_repair(
+            occ, tgt, OBJECTIVE_CODES[self.objective], w.per_transfer, w.per_step, w.per_slot_atom, self._k_occ,
+            self._k_free, self._k_holes, self._k_row_cum, self._k_col_cum, self._k_cost, self._k_lsa_f,
+            self._k_lsa_i, self._k_in_sr, self._k_in_sc, self._k_route, self._k_route_alt, self._k_hop_ptr,
+            self._k_cells, self._k_group_ptr, self._k_last_touch, self._k_merged_of, self._k_keys,
+            self._k_created_by, self._out_hop_ptr, self._out_cells, self._out_group_ptr,
+        )  # fmt: skip
+        self._n_hops, self._n_groups = n_hops, n_groups
+        self._solved = True
         return n_steps
+
+    def batch(self) -> Plan:
+        if not self._solved:
+            raise RuntimeError("batch() needs a successful solve_moves() first")
+        return self._batch_hops(self._out_hop_ptr, self._n_hops, self._out_cells, self._out_group_ptr, self._n_groups)
+
+    def hop_groups(self) -> list[list[list[tuple[int, int]]]]:
+        """The last plan's hop groups before batching, as ``reference_hops`` returns them (for the tests)."""
+        hp, cells, gp = self._out_hop_ptr, self._out_cells, self._out_group_ptr
+        return [
+            [[(int(r), int(c)) for r, c in cells[hp[k] : hp[k + 1]]] for k in range(gp[g], gp[g + 1])]
+            for g in range(self._n_groups)
+        ]
+
+    def reference_hops(self, occupancy: np.ndarray, target: np.ndarray) -> list[list[list[tuple[int, int]]]]:
+        """The kernels' reference, in plain Python over lists with scipy's assignment: the hop groups of the
+        plan (the planner must be solved again before ``batch``)."""
+        AssignmentPlanner.solve_moves(self, occupancy, target)
+        self._merge_aligned()
+        self._solved = False
+        return [self._hops[a:b] for a, b in zip(self._groups[:-1], self._groups[1:], strict=True)]
 
     def _merge_aligned(self) -> None:
         """Straight single-hop repairs that start in one column and cover the same columns (or start in one

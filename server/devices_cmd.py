@@ -109,14 +109,15 @@ class _Stop(Exception):
 
 
 def _idle_within_limits(config: SystemConfig, hold: np.ndarray) -> CheckResult:
-    """The idle waveform's peak per channel against the configured RF limit: the sum of the configured tone
-    amplitudes of that channel's axis (the most the engine ever asks of the amplifier), and full scale."""
-    from engine.waveforms import axis_tones
+    """The idle waveform's peak per channel against the configured RF limit: the sum of the tone amplitudes of
+    that channel's axis as the samples carry them (compensated for the DAC's sinc roll-off when so configured:
+    the most the engine ever asks of the amplifier), and full scale."""
+    from engine.waveforms import axis_tones, tone_sample_amplitudes
 
     axes = ("x",) if config.array.trap_source == "aod" else ("x", "y")
     parts, ok = [], True
     for ch, axis in enumerate(axes):
-        limit = min(float(np.sum(axis_tones(config, axis).amplitude)), 1.0)
+        limit = min(float(np.sum(tone_sample_amplitudes(config, axis_tones(config, axis)))), 1.0)
         peak = float(np.max(np.abs(hold[:, ch]))) / 32767.0
         ok &= peak <= limit + 1.0 / 32767.0
         mv = ""

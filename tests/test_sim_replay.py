@@ -60,7 +60,9 @@ def test_same_seed_loses_the_same_atoms_whatever_the_number_of_elapse_to_calls(r
 
 def test_vacuum_survival_is_exponential_in_time_however_time_is_cut() -> None:
     """Many small steps or one big one: the fraction left after time t is exp(-t / tau) either way."""
-    cfg = grid_config(64, 64, sim={"vacuum_lifetime_s": 1.0})
+    # 64 tones per axis up to 143 MHz at 313.6 MS/s: amplitudes that fit full scale once compensated for the DAC
+    cfg = grid_config(64, 64, sim={"vacuum_lifetime_s": 1.0},
+                      array={"x_tones": {"amplitude": 0.012}, "y_tones": {"amplitude": 0.012}})
     for n_steps in (1, 400):
         world = World(cfg, rng=np.random.default_rng(n_steps))
         world.set_occupancy(np.ones((64, 64), bool))

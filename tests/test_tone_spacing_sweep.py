@@ -65,6 +65,6 @@ def test_a_chain_loses_no_atom_at_any_accepted_spacing() -> None:
 
 @pytest.mark.slow
 def test_the_32x64_grid_loses_no_atom_at_any_accepted_spacing() -> None:
-    base = grid_config(32, 64, target={"kind": "centre", "count": 1024},
+    base = grid_config(32, 64, target={"kind": "centre", "count": 1024}, array={"y_tones": {"amplitude": 0.012}},
                        awg={"n_segments": 256, "n_steps": 4096, "waveforms_per_segment": 32})
     _sweep(base, ("aod-parallel", "red-rec", "assignment"), shots=4)

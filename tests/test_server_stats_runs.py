@@ -191,7 +191,7 @@ def test_frames_of_every_nth_shot_are_kept_and_served(tmp_path: Path) -> None:
                         assert pixels.shape == frame_shape(config.camera)
                         assert (pixels == 500 + 100 * cycle).all()  # the fake's frame of that cycle, exactly
                     else:
-                        assert r.status_code == 404 and "every 2th shot" in r.json()["detail"]
+                        assert r.status_code == 404 and "frames of one shot in 2" in r.json()["detail"]
             beyond = len(records[0].cycles)
             assert client.get(f"/api/runs/{name}/shots/0/frames/{beyond}").status_code == 404
             assert client.get(f"/api/runs/{name}/shots/3/frames/0").status_code == 404

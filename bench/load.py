@@ -37,7 +37,7 @@ from bench.runtime import REPO, SOFTWARE_STAGES_WITH_RENDER, cpu_hogs, software_
 from engine.config import load_config
 from engine.records import ShotRecord
 from server.runstore import RunStore
-from server.serve import engine_cpu_arg, engine_host_factory
+from server.serve import engine_cpu_arg, engine_host_factory, start_dashboard
 
 __all__ = ["CHROMIUM", "register", "run_load_bench", "run_load_clients"]
 
@@ -258,10 +258,8 @@ def run_load_bench(
             command = [sys.executable, "-m", "bench.load", "--clients-only", base, "--seconds", str(seconds),
                        "--rate", str(rate_hz), "--ws", str(n_ws)]
             if dashboard:
-                from frontend.dashboard import Dashboard  # deferred on purpose: viser loads only when asked
-
-                served_dashboard = Dashboard(service, host="127.0.0.1", port=0, api_url=base)
-                command += ["--dashboard", f"http://127.0.0.1:{served_dashboard.start()}/"]
+                served_dashboard = start_dashboard(service, host="127.0.0.1", port=0, api_url=base)
+                command += ["--dashboard", f"http://127.0.0.1:{served_dashboard.port}/"]
                 drawn_before = served_dashboard.updates
             proc = subprocess.Popen(command, stdout=subprocess.PIPE, cwd=REPO, text=True)
             assert proc.stdout is not None

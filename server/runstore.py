@@ -286,7 +286,7 @@ def read_run_frame(f: h5py.File, index: int, cycle: int) -> np.ndarray:
     row = _frame_rows(f, index).get(cycle)
     if row is None:
         every = int(f.attrs.get("frames_every_nth_shot", 0))
-        kept = "keeps no frames" if not every else f"keeps the frames of every {every}th shot (within its size limit)"
+        kept = "keeps no frames" if not every else f"keeps the frames of one shot in {every} (within its size limit)"
         raise LookupError(f"no camera frame kept for shot {index} cycle {cycle}: this run file {kept}")
     return np.asarray(f["frames"][row])
 

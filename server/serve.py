@@ -24,8 +24,12 @@ import socket
 import sys
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from engine.config import ConfigError, SystemConfig, load_config
+
+if TYPE_CHECKING:
+    from frontend.dashboard import Dashboard
 
 __all__ = [
     "DEFAULT_CONFIG", "add_parser", "build_engine", "engine_cpu_arg", "engine_host_factory", "is_loopback", "main"
@@ -139,6 +143,16 @@ def engine_cpu_arg(value: str) -> int | None:
 MAX_CONNECTIONS = 512
 
 
+def start_dashboard(service: Any, *, host: str, port: int, api_url: str, token: str | None = None) -> Dashboard:
+    """The viser dashboard over ``service``, started and listening (``.port``; ``port`` 0 picks a free one);
+    ``llrs serve`` serves it beside the API, ``llrs bench load --dashboard`` in its load phase."""
+    from frontend.dashboard import Dashboard  # deferred on purpose: viser loads only when a dashboard is served
+
+    dashboard = Dashboard(service, host=host, port=port, api_url=api_url, token=token)
+    dashboard.start()
+    return dashboard
+
+
 def _raise_open_file_limit() -> None:
     """Let this process hold as many descriptors as the system allows it (the soft limit is often 1024), so
     that a flood of connections is answered 503 by uvicorn instead of failing every accept()."""
@@ -226,10 +240,10 @@ def main(args: argparse.Namespace) -> int:
         service.start(run=False)
         dashboard_port = None
         if not args.no_dashboard:
-            from frontend.dashboard import Dashboard
-
-            dashboard = Dashboard(service, host=dashboard_host, port=args.dashboard_port, api_url=api_url, token=token)
-            dashboard_port = dashboard.start()
+            dashboard = start_dashboard(
+                service, host=dashboard_host, port=args.dashboard_port, api_url=api_url, token=token
+            )
+            dashboard_port = dashboard.port
         # Without a token the server is loopback-only, and answers only to loopback names (a page of another
         # site cannot reach it by pointing a DNS name of its own at 127.0.0.1).
         trusted: tuple[str, ...] | None = (*LOOPBACK_HOSTS, args.host.strip("[]").lower(), *args.trusted_host)

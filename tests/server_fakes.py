@@ -8,8 +8,10 @@ Calibration frames are real simulated EMCCD frames (``drivers.sim.camera.SimCame
 
 from __future__ import annotations
 
+import struct
 import threading
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -156,3 +158,13 @@ class FakeEngine:
             camera.trigger()
             camera.read(frames[i], timeout_s=1.0)
         return frames
+
+
+def png_pixels(data: bytes) -> np.ndarray:
+    """The pixels of a 16-bit grayscale PNG as the server encodes it (``server.png``: one IDAT, no filters)."""
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    w, h, depth = struct.unpack(">IIB", data[16:25])
+    idat = data[data.index(b"IDAT") + 4 :]
+    raw = np.frombuffer(zlib.decompress(idat[: idat.index(b"IEND") - 8]), dtype=np.uint8).reshape(h, -1)
+    assert depth == 16 and (raw[:, 0] == 0).all()
+    return raw[:, 1:].copy().view(">u2").reshape(h, w)

@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import asyncio
-import struct
 import threading
 import time
-import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -21,7 +19,7 @@ from server.app import create_app
 from server.hub import LiveHub
 from server.runstore import RunStore
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
+from server_fakes import FakeEngine, example_config, png_pixels
 
 
 def make_service(tmp_path: Path, **engine_kw: object) -> tuple[LabService, FakeEngine]:
@@ -94,20 +92,11 @@ def test_unknown_shot_and_image_are_404(client: TestClient) -> None:
     assert client.get(f"/api/shots/{shot['shot_id']}/image/-1").status_code == 422
 
 
-def _png_pixels(data: bytes) -> np.ndarray:
-    assert data[:8] == b"\x89PNG\r\n\x1a\n"
-    w, h, depth = struct.unpack(">IIB", data[16:25])
-    idat = data[data.index(b"IDAT") + 4 :]
-    raw = np.frombuffer(zlib.decompress(idat[: idat.index(b"IEND") - 8]), dtype=np.uint8).reshape(h, -1)
-    assert depth == 16 and (raw[:, 0] == 0).all()
-    return raw[:, 1:].copy().view(">u2").reshape(h, w)
-
-
 def test_image_is_lossless_png(client: TestClient) -> None:
     shot = client.post("/api/shots").json()
     r = client.get(f"/api/shots/{shot['shot_id']}/image/0")
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"
-    pixels = _png_pixels(r.content)
+    pixels = png_pixels(r.content)
     assert pixels.shape == frame_shape(example_config().camera) and (pixels == 500).all()
 
 

@@ -4,8 +4,6 @@ per-cycle counts and moved atoms read back as they were recorded."""
 from __future__ import annotations
 
 import io
-import struct
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,7 +19,7 @@ from engine.records import CycleRecord, Outcome, ShotRecord
 from server.app import create_app
 from server.runstore import FrameKeeping, RunStore
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
+from server_fakes import FakeEngine, example_config, png_pixels
 
 TOKEN = "stats-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -130,15 +128,6 @@ def test_run_file_keeps_counts_and_moved_atoms(tmp_path: Path) -> None:
         reopened.close()
 
 
-def _png_pixels(data: bytes) -> np.ndarray:
-    assert data[:8] == b"\x89PNG\r\n\x1a\n"
-    w, h, depth = struct.unpack(">IIB", data[16:25])
-    idat = data[data.index(b"IDAT") + 4 :]
-    raw = np.frombuffer(zlib.decompress(idat[: idat.index(b"IEND") - 8]), dtype=np.uint8).reshape(h, -1)
-    assert depth == 16
-    return raw[:, 1:].copy().view(">u2").reshape(h, w)
-
-
 def _shot(config: object, shot_id: int, cycles: list[CycleRecord]) -> ShotRecord:
     occ = cycles[0].occupancy
     return ShotRecord(shot_id=shot_id, config_digest=config.digest(), algorithm="red-rec",  # type: ignore[attr-defined]
@@ -198,11 +187,11 @@ def test_frames_of_every_nth_shot_are_kept_and_served(tmp_path: Path) -> None:
                     r = client.get(f"/api/runs/{name}/shots/{index}/frames/{cycle}")
                     if kept:
                         assert r.status_code == 200 and r.headers["content-type"] == "image/png"
-                        pixels = _png_pixels(r.content)
+                        pixels = png_pixels(r.content)
                         assert pixels.shape == frame_shape(config.camera)
                         assert (pixels == 500 + 100 * cycle).all()  # the fake's frame of that cycle, exactly
                     else:
-                        assert r.status_code == 404 and "every 2th shot" in r.json()["detail"]
+                        assert r.status_code == 404 and "frames of one shot in 2" in r.json()["detail"]
             beyond = len(records[0].cycles)
             assert client.get(f"/api/runs/{name}/shots/0/frames/{beyond}").status_code == 404
             assert client.get(f"/api/runs/{name}/shots/3/frames/0").status_code == 404

@@ -55,6 +55,7 @@ from engine import move_model as mm
 from engine.config import SystemConfig
 from engine.devices import Clock
 from engine.move_model import MoveState
+from engine.routing import n_positions, positions_per_site, traps_of
 
 __all__ = ["World", "WorldCounters"]
 
@@ -155,7 +156,7 @@ class World:
         self.reseed(rng if rng is not None else np.random.default_rng(config.sim.seed))
         self.counters = WorldCounters()
         self.reference = reference
-        self.nx = self.ny = 0
+        self.nx = self.ny = self._grid_half = 0
         self.vacuum_lifetime_s = 0.0
         self.lossless = True
         self._t_s = clock.now_s() if clock is not None else 0.0
@@ -192,16 +193,23 @@ class World:
             )
             self.survival_transfer *= p_transfer
             self.survival_step *= p_step
+        # interstitial routing: a slot moves a tweezer half a site; its atom survives a half-site move with
+        # sqrt(survival_step), so a path risks the same per site however it is cut into slots
+        self.half = positions_per_site(arr.routing)
+        self.survival_tweezer_step = self.survival_step ** (1.0 / self.half)
         lossless = sim.lossless if lossless is None else lossless
         vacuum_changed = (sim.vacuum_lifetime_s, lossless) != (self.vacuum_lifetime_s, self.lossless)
         self.vacuum_lifetime_s = sim.vacuum_lifetime_s
         self.lossless = lossless
         self._configure_imaging(config)
-        if (arr.ny, arr.nx) != (self.ny, self.nx):
-            self.nx, self.ny = arr.nx, arr.ny
-            self._static = np.zeros((self.ny, self.nx), dtype=bool)
-            self._held = np.zeros((self.ny, self.nx), dtype=bool)  # atoms in tweezers, at the tweezer's site
-            self._move = MoveState(self.ny, self.nx)  # the move model's scratch (and how held atoms were taken)
+        if (arr.ny, arr.nx, self.half) != (self.ny, self.nx, self._grid_half):
+            self.nx, self.ny, self._grid_half = arr.nx, arr.ny, self.half
+            py, px = n_positions(self.ny, self.half), n_positions(self.nx, self.half)
+            # static atoms on the grid of positions (engine/routing.py; channels never hold one) and its traps
+            self._grid = np.zeros((py, px), dtype=bool)
+            self._static = traps_of(self._grid, self.half)
+            self._held = np.zeros((py, px), dtype=bool)  # atoms in tweezers, at the tweezer's position
+            self._move = MoveState(py, px)  # the move model's scratch (and how held atoms were taken)
             self._move_events = mm.new_events()
             vacuum_changed = True
         if vacuum_changed:
@@ -233,7 +241,8 @@ class World:
         return view
 
     def held(self) -> np.ndarray:
-        """Atoms in mobile tweezers, at their tweezer's site: read-only ``bool[ny, nx]`` (slm only)."""
+        """Atoms in mobile tweezers, at their tweezer's position: read-only ``bool`` on the grid of positions
+        (``engine.routing``: ``[ny, nx]`` under lattice routing; slm only)."""
         view = self._held.view()
         view.flags.writeable = False
         return view
@@ -252,7 +261,7 @@ class World:
 
         ``_next_hit_s[0]`` are the static traps, ``[1]`` the tweezer sites; infinite when lossless.
         """
-        self._next_hit_s = np.full((2, self.ny, self.nx), np.inf)
+        self._next_hit_s = np.full((2, *self._grid.shape), np.inf)
         if not self.lossless:
             waits = self._vacuum_draws.take(self._next_hit_s.size).reshape(self._next_hit_s.shape)
             self._next_hit_s[:] = self._t_s - self.vacuum_lifetime_s * np.log1p(-waits)
@@ -276,14 +285,14 @@ class World:
         while not done:
             u.ensure(64)
             u.pos, lost, done = _vacuum(
-                self._static, self._held, self._next_hit_s, t_s, u.buf, u.pos, self.vacuum_lifetime_s
+                self._grid, self._held, self._next_hit_s, t_s, u.buf, u.pos, self.vacuum_lifetime_s
             )
             self.counters.lost_vacuum += lost
         self._first_hit_s = float(self._next_hit_s.min())
 
     def _vacuum_reference(self, t_s: float) -> None:
         hits = self._next_hit_s.reshape(2, -1)
-        grids = (self._static.reshape(-1), self._held.reshape(-1))
+        grids = (self._grid.reshape(-1), self._held.reshape(-1))
         while True:
             kind, site = np.unravel_index(np.argmin(hits), hits.shape)
             if hits[kind, site] > t_s:
@@ -387,14 +396,15 @@ class World:
             u.ensure(need)
         if self.reference:
             u.pos = mm.tweezer_slot_reference(
-                yt, xt, FULL_FRACTION, self._static, self._held, st.held_mark, u.buf, u.pos,
-                self.survival_transfer if draw_transfer else None, self.survival_step if draw_step else None, events,
+                yt, xt, FULL_FRACTION, self.half, self._grid, self._held, st.held_mark, u.buf, u.pos,
+                self.survival_transfer if draw_transfer else None, self.survival_tweezer_step if draw_step else None,
+                events,
             )  # fmt: skip
             return
         u.pos = mm.tweezer_slot(
-            yt, xt, FULL_FRACTION, self._static, self._held, st.held_mark, st.ids, st.atom_stats, False, st.arrivals,
-            st.tweezers, u.buf, u.pos,
-            draw_transfer, self.survival_transfer, draw_step, self.survival_step, events,
+            yt, xt, FULL_FRACTION, self.half, self._grid, self._held, st.held_mark, st.ids, st.atom_stats, False,
+            st.arrivals, st.tweezers, u.buf, u.pos,
+            draw_transfer, self.survival_transfer, draw_step, self.survival_tweezer_step, events,
         )  # fmt: skip
 
     def apply_segment(self, decoded: DecodedSegment, t0_s: float | None = None, slot_s: float = 0.0) -> None:
@@ -489,8 +499,8 @@ def _warm_up() -> None:
     st = MoveState(1, 1)
     ev = mm.new_events()
     mm.tweezer_slot(
-        one, one, 0.5, st.static, st.held, st.held_mark, st.ids, st.atom_stats, False, st.arrivals, st.tweezers, u, 0,
-        False, 1.0, False, 1.0, ev,
+        one, one, 0.5, 1, st.static, st.held, st.held_mark, st.ids, st.atom_stats, False, st.arrivals, st.tweezers,
+        u, 0, False, 1.0, False, 1.0, ev,
     )  # fmt: skip
     mm.chain_slot(one, 0.5, st.static[0], st.ids[0, 0], st.atom_stats, False, st.chain_scratch, u, 0, False, 1.0, ev)
     _kernels_warm = True

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from engine.config import ConfigError, SystemConfig, ToneAxisConfig
+from engine.routing import position_tones, positions_per_site
 from engine.tones import Tones, check_below_nyquist, tones_of
 
 
@@ -47,7 +48,8 @@ def axis_tones(config: SystemConfig, axis: str) -> Tones:
     tc, n = _axis_config(config, axis)
     wf = config.waveforms
     where = f"array.{axis}_tones" + (".csv" if tc.csv is not None else "")
-    freq, amp, phase = tones_of(tc, n, axis)
+    half = positions_per_site(config.array.routing)
+    freq, amp, phase = position_tones(tones_of(tc, n, axis), half)
     cycles = freq * wf.slot_duration_s
     bad = np.flatnonzero(np.abs(cycles - np.round(cycles)) > 1e-6)
     if bad.size:
@@ -66,8 +68,14 @@ def axis_tones(config: SystemConfig, axis: str) -> Tones:
     if np.any(amp <= 0) or np.any(amp > 1):
         k = int(np.flatnonzero((amp <= 0) | (amp > 1))[0])
         raise ConfigError(f"{where}: tone {k} amplitude {amp[k]:g} must be in (0, 1] (a fraction of full scale)")
+    m = np.round(cycles).astype(np.int64)
     if tc.csv is None and tc.phases == "continuous":
-        phase = continuous_phases(np.round(cycles).astype(np.int64), wf.slot_samples)
+        phase = continuous_phases(m, wf.slot_samples)
+    elif half == 2:  # a midpoint: the phase a tone from the site below reaches with no correction
+        phase = np.asarray(phase, dtype=np.float64).copy()
+        n_samples = wf.slot_samples
+        turns = ((m[1::2] - m[:-1:2]) * (n_samples - 1)) % (2 * n_samples)
+        phase[1::2] = np.mod(phase[:-1:2] + np.pi * turns / n_samples, 2 * np.pi)
     return Tones(freq, amp, np.asarray(phase, dtype=np.float64))
 
 
@@ -78,12 +86,13 @@ def axes_of(config: SystemConfig) -> tuple[str, ...]:
 
 def check_headroom(config: SystemConfig, tones: dict[str, Tones] | None = None) -> None:
     """Raise ``ValueError`` if an axis could clip: its worst case (the sum of its n largest amplitudes, one
-    tone per site) must be at most 1.0 of full scale."""
+    tone per site; under interstitial routing the comb also holds the midpoints, but tones stay a site apart,
+    so at most n of them play) must be at most 1.0 of full scale."""
     for axis in axes_of(config):
         t = tones[axis] if tones is not None else axis_tones(config, axis)
-        worst = float(np.sum(t.amplitude))
+        n = _axis_config(config, axis)[1]
+        worst = float(np.sum(np.sort(t.amplitude)[::-1][:n]))
         if worst > 1.0 + 1e-12:
-            n = t.amplitude.size
             raise ValueError(
                 f"array.{axis}_tones: the {n} tones can sum to {worst:.4g} of full scale, so int16 samples would "
                 f"clip; lower array.{axis}_tones.amplitude (at most {1.0 / n:.4g} for {n} equal tones)"

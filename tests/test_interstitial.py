@@ -124,6 +124,26 @@ def test_decoded_half_site_positions_match_the_plan() -> None:
     assert world.counters.captured == 0 and world.counters.lost == 0
 
 
+@pytest.mark.parametrize(("pass_by", "passed_atom_kept"), [(1.0, True), (0.0, False)])
+def test_the_world_charges_a_pass_by_only_when_asked(pass_by: float, passed_atom_kept: bool) -> None:
+    """``sim.moves.pass_by_survival``: the atom at column 1 is passed once, half a site away (the tweezer ends a
+    slot beside it, at position (1, 2) in the channel between rows 0 and 1)."""
+    config = _config(nx=3, ny=2)
+    sim = config.sim.model_copy(update={
+        "lossless": False, "survival_transfer": 1.0, "survival_step": 1.0, "vacuum_lifetime_s": 1e9,
+        "moves": config.sim.moves.model_copy(update={"pass_by_survival": pass_by}),
+    })  # fmt: skip
+    config = config.model_copy(update={"sim": sim})
+    plan, occ, target = _past_an_atom()
+    decoded = SampleDecoder(config).decode(WaveformBank(config).render_slots(plan.operations))
+    world = World(config)
+    world.set_occupancy(occ)
+    world.apply_segment(decoded)
+    assert bool(world.occupancy()[0, 1]) is passed_atom_kept
+    assert bool(world.occupancy()[0, 2])  # the carried atom arrives either way
+    assert world.counters.lost_pass_by == (0 if passed_atom_kept else 1)
+
+
 def test_a_lossless_closed_loop_shot_fills_the_target_and_leaves_the_other_atoms() -> None:
     config = _config()
     devices, lab = build_sim_lab(config)

@@ -76,6 +76,7 @@ class WorldCounters:
     lost_released: int = 0
     lost_imaging: int = 0
     lost_trap: int = 0  # atoms a lossy trap lost (the ``set_trap_survival`` test hook)
+    lost_pass_by: int = 0  # interstitial routing: atoms in traps a loaded tweezer passed half a site away
     captured: int = 0  # atoms an empty full-depth tweezer took on arriving over them (not by ramping up)
     dragged: int = 0  # captured atoms that then moved with their tweezer
 
@@ -90,6 +91,7 @@ class WorldCounters:
             + self.lost_released
             + self.lost_imaging
             + self.lost_trap
+            + self.lost_pass_by
         )
 
     def as_dict(self) -> dict[str, int]:
@@ -197,6 +199,7 @@ class World:
         # sqrt(survival_step), so a path risks the same per site however it is cut into slots
         self.half = positions_per_site(arr.routing)
         self.survival_tweezer_step = self.survival_step ** (1.0 / self.half)
+        self.pass_by_survival = sim.moves.pass_by_survival
         lossless = sim.lossless if lossless is None else lossless
         vacuum_changed = (sim.vacuum_lifetime_s, lossless) != (self.vacuum_lifetime_s, self.lossless)
         self.vacuum_lifetime_s = sim.vacuum_lifetime_s
@@ -318,9 +321,11 @@ class World:
             self._apply_chain(np.ascontiguousarray(x_tracks, dtype=np.float32), events)
         else:
             yt = y_tracks if y_tracks is not None else _NO_TRACKS
-            self._apply_tweezers(
-                np.ascontiguousarray(x_tracks, dtype=np.float32), np.ascontiguousarray(yt, dtype=np.float32), events
-            )
+            xt = np.ascontiguousarray(x_tracks, dtype=np.float32)
+            yt = np.ascontiguousarray(yt, dtype=np.float32)
+            self._apply_tweezers(xt, yt, events)
+            if self.half > 1 and self.pass_by_survival < 1.0 and not self.lossless:
+                self._pass_by(xt, yt)
         e = events.tolist()  # Python ints: cheaper to add than numpy scalars, ~500 slots a shot
         c = self.counters
         c.transfers += e[mm.EV_PICKED] + e[mm.EV_CAPTURED] + e[mm.EV_IMPLANTED]
@@ -406,6 +411,34 @@ class World:
             st.arrivals, st.tweezers, u.buf, u.pos,
             draw_transfer, self.survival_transfer, draw_step, self.survival_tweezer_step, events,
         )  # fmt: skip
+
+    def _pass_by(self, xt: np.ndarray, yt: np.ndarray) -> None:
+        """``sim.moves.pass_by_survival``: every occupied trap half a site from a loaded tweezer that moved this
+        slot (the two traps either side of its channel) keeps its atom with that probability, one draw per
+        trap passed, from the move stream."""
+        r, c = np.nonzero(self._held)
+        if r.size == 0:
+            return
+        py, px = self._grid.shape
+        row_moved = np.zeros(py, dtype=bool)  # a tone that ends the slot at this position moved in it
+        col_moved = np.zeros(px, dtype=bool)
+        row_moved[yt[:, 1].astype(np.int64)] = yt[:, 0] != yt[:, 1]
+        col_moved[xt[:, 1].astype(np.int64)] = xt[:, 0] != xt[:, 1]
+        moved = row_moved[r] | col_moved[c]
+        r, c = r[moved], c[moved]
+        row_channel = (r % 2 == 1) & (c % 2 == 0)  # between rows: traps above and below
+        col_channel = (r % 2 == 0) & (c % 2 == 1)  # between columns: traps left and right
+        rr = np.concatenate([r[row_channel] - 1, r[row_channel] + 1, r[col_channel], r[col_channel]])
+        cc = np.concatenate([c[row_channel], c[row_channel], c[col_channel] - 1, c[col_channel] + 1])
+        inside = (rr >= 0) & (rr < py) & (cc >= 0) & (cc < px)
+        rr, cc = rr[inside], cc[inside]
+        hit = self._grid[rr, cc]
+        rr, cc = rr[hit], cc[hit]
+        if rr.size == 0:
+            return
+        lost = self._move_draws.take(rr.size) >= self.pass_by_survival
+        self._grid[rr[lost], cc[lost]] = False
+        self.counters.lost_pass_by += int(lost.sum())
 
     def apply_segment(self, decoded: DecodedSegment, t0_s: float | None = None, slot_s: float = 0.0) -> None:
         """Apply every slot of a decoded segment (vacuum loss up to each slot's start when ``t0_s`` is given)."""

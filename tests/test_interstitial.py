@@ -103,6 +103,24 @@ def test_planners_under_interstitial_routing_pass_the_validator(bulk: str) -> No
                 assert not np.any(moved & target[occ])  # no atom already in the target
 
 
+def test_repairs_in_one_column_move_together_past_the_atoms_between() -> None:
+    """Two holes in column 1 of the band (rows 1-3), the spare atoms below it in the same column, the band's
+    atom at row 3 in the way: one extract, both atoms moved once, nobody else touched."""
+    occ = np.zeros((6, 3), dtype=bool)
+    occ[1:4] = True
+    occ[1:3, 1] = False
+    occ[4:6, 1] = True
+    target = np.zeros((6, 3), dtype=bool)
+    target[1:4] = True
+    solver = Solver(nx=3, ny=6, algorithm="repair", routing="interstitial")
+    solver.solve_moves(occ, target)
+    plan = solver.batch()
+    report = validate(plan, occ, target, trap_source="slm")
+    assert int(np.count_nonzero(plan.operations.kind[: plan.n_slots] == EXTRACT)) == 1
+    moved = np.flatnonzero(report.atom_pickups)
+    assert np.flatnonzero(occ.ravel())[moved].tolist() == [13, 16]  # rows 4 and 5 of column 1
+
+
 def test_decoded_half_site_positions_match_the_plan() -> None:
     config = _config()
     plan, occ, target = _past_an_atom()

@@ -10,8 +10,10 @@ Two planners, both writing ``Operations`` on the grid of positions (``half = 2``
   implant. Every position between the two half steps is odd on one axis at least, so the loaded tweezer ends
   no slot over a trap. The assignment is the minimum total Manhattan distance (scipy's Hungarian solver): with
   two transfers per moved atom whatever the pair, fewer sites travelled is also fewer expected losses, so
-  every objective gives this plan. Routes run one after the other (a 1 x 1 product set, no empty tweezer
-  anywhere), in ``2 d + 3`` to ``2 d + 7`` slots for a pair ``d`` sites apart.
+  every objective gives this plan. A route of ``d`` sites takes ``2 d`` half-site steps (2 more when the
+  spare atom is in the hole's column or row). Spare atoms in one column going to holes in one column move
+  together on one x tone and a y tone each (one row and one row likewise), so the product set is exactly
+  their tweezers, all loaded: no empty tweezer anywhere. Groups run one after the other.
 - ``LatticeOnPositions``: any lattice planner (a strategy's bulk planner) with its plan written on the grid of
   positions (``engine.routing.lattice_to_positions``: every one-site shift as two half-site shifts).
 """
@@ -25,6 +27,49 @@ from engine.routing import lattice_to_positions, n_positions
 from engine.solvers.base import Planner, UnsolvableError
 
 __all__ = ["InterstitialRepairPlanner", "LatticeOnPositions"]
+
+
+def _groups(pairs: np.ndarray, n_positions_yx: tuple[int, int]) -> list[tuple[int, np.ndarray]]:
+    """Repairs that can move together: ``(shared axis, rows)`` with rows ``(r0, c0, r1, c1)``.
+
+    Spare atoms in one column whose holes are in one column (most of them in a band: the nearest spare atom is
+    straight above or below) share an x tone and move as a column group; the rest are grouped by source and hole
+    row likewise, sharing a y tone. Within a group the holes are given to the spare atoms in order along the
+    other axis (it keeps the total distance and the tones' order), and a group is cut where two tones would
+    come within a site of each other beside their holes (``_sides``)."""
+    out: list[tuple[int, np.ndarray]] = []
+    rest = pairs
+    for shared in (1, 0):  # column groups first, then row groups of what is left
+        own = 1 - shared
+        keys = rest[:, shared] * 1_000_000 + rest[:, 2 + shared]
+        leftover = []
+        for key in np.unique(keys):
+            group = rest[keys == key]
+            if group.shape[0] == 1 and shared == 1:
+                leftover.append(group)
+                continue
+            group = group[np.argsort(group[:, own], kind="stable")]
+            group[:, 2 + own] = np.sort(group[:, 2 + own])
+            out.extend((shared, part) for part in _split_crowded(group, own, n_positions_yx[own]))
+        rest = np.concatenate(leftover) if leftover else pairs[:0]
+    return out
+
+
+def _sides(a: np.ndarray, a1: np.ndarray, n: int) -> np.ndarray:
+    """Which channel beside each hole (-1 below / +1 above its position ``a1``, on an axis of ``n`` positions)
+    a tone from ``a`` travels to: the side facing where it comes from, the inner side at the edges."""
+    side = np.where(a < a1, -1, 1)
+    side = np.where((a == a1) & (a1 == n - 1), -1, side)
+    return np.where((a1 + side < 0) | (a1 + side >= n), -side, side)
+
+
+def _split_crowded(group: np.ndarray, own: int, n: int) -> list[np.ndarray]:
+    """Cut a sorted group where neighbouring tones would end their channel travel less than a site apart
+    (``n``: positions on the group's own axis)."""
+    a, a1 = 2 * group[:, own], 2 * group[:, 2 + own]
+    channel = a1 + _sides(a, a1, n)
+    cuts = np.flatnonzero(np.diff(channel) < 2) + 1
+    return np.split(group, cuts)
 
 
 class InterstitialRepairPlanner:
@@ -57,33 +102,65 @@ class InterstitialRepairPlanner:
             from scipy.optimize import linear_sum_assignment  # deferred: scipy loads with this planner only
 
             cost = np.abs(spare[:, None, :] - holes[None, :, :]).sum(axis=2)
-            chosen, hole_of = linear_sum_assignment(cost.T)  # rows: holes
-            for h, s in zip(chosen.tolist(), hole_of.tolist(), strict=True):
-                self._route(int(spare[s, 0]), int(spare[s, 1]), int(holes[h, 0]), int(holes[h, 1]))
+            chosen, spare_of = linear_sum_assignment(cost.T)  # rows: holes
+            pairs = np.concatenate([spare[spare_of], holes[chosen]], axis=1)  # (r0, c0, r1, c1) per hole
+            for shared, group in _groups(pairs, (self.py, self.px)):
+                self._route_group(shared, group)
         self._plan.steps = self._steps[: self._n_steps]
         return self._n_steps
 
     def batch(self) -> Plan:
         return self._plan
 
-    def _route(self, r0: int, c0: int, r1: int, c1: int) -> None:
-        """Extract at trap (r0, c0), travel the channels, implant at trap (r1, c1) (see the module docstring)."""
-        y, x = 2 * r0, 2 * c0
-        sy = (1 if r1 > r0 else -1) if r1 != r0 else (1 if r0 < self.ny - 1 else -1)
-        sx = (-1 if c0 < c1 else 1) if c1 != c0 else (1 if c1 < self.nx - 1 else -1)
-        if not 0 <= 2 * c1 + sx < self.px:  # the hole is at an edge column: the channel on its inner side
-            sx = -sx
-        self.operations.append(EXTRACT, [y], [x])
-        moves = [(sy, 0)]
-        channel_x = 2 * c1 + sx
-        moves += [(0, 1 if channel_x > x else -1)] * abs(channel_x - x)
-        moves += [(1 if 2 * r1 > y + sy else -1, 0)] * abs(2 * r1 - (y + sy))
-        moves += [(0, -sx)]
-        for dy, dx in moves:
-            self.operations.append(SHIFT, [y], [x], [dy], [dx])
-            self._step(y * self.px + x, (y + dy) * self.px + x + dx)
-            y, x = y + dy, x + dx
-        self.operations.append(IMPLANT, [y], [x])
+    def _route_group(self, shared: int, group: np.ndarray) -> None:
+        """Move a group of spare atoms together (``_groups``): ``shared`` is the axis (0: y, 1: x) whose one tone
+        they all use, ``group`` their ``(r0, c0, r1, c1)`` rows, sorted along the other axis.
+
+        Phases (own = the other axis): extract; half a site along the shared axis into the channel towards the
+        holes; along the channel, each own tone to the channel beside its hole (``_sides``), tones that arrive
+        early waiting; along the shared axis to the holes' line; half a site along the own axis onto the holes;
+        implant. Every tweezer of the 1 x k product set is loaded, so none is ever empty."""
+        own = 1 - shared
+        n_shared, n_own = (self.py, self.px) if shared == 0 else (self.px, self.py)
+        b0, b1 = 2 * int(group[0, shared]), 2 * int(group[0, 2 + shared])
+        a = 2 * group[:, own].astype(np.int64)
+        a1 = 2 * group[:, 2 + own].astype(np.int64)
+        sb = (1 if b1 > b0 else -1) if b1 != b0 else (1 if b0 < n_shared - 1 else -1)
+        side = _sides(a, a1, n_own)
+        moves: list[tuple[int, np.ndarray]] = [(sb, np.zeros_like(a))]
+        channel = a1 + side
+        pos = a.copy()
+        while np.any(pos != channel):
+            d = np.sign(channel - pos)
+            moves.append((0, d))
+            pos += d
+        moves += [(int(np.sign(b1 - b0 - sb)), np.zeros_like(a))] * abs(b1 - b0 - sb)
+        moves.append((0, -side))
+        self._emit(shared, b0, a, moves)
+
+    def _emit(self, shared: int, b: int, a: np.ndarray, moves: list[tuple[int, np.ndarray]]) -> None:
+        """Write the group's slots and steps: one tone at ``b`` on the shared axis, tones ``a`` on the other;
+        each move is (the shared tone's delta, the own tones' deltas)."""
+        a = a.copy()
+
+        def tones(db: int, da: np.ndarray) -> tuple[list[int], list[int], list[int], list[int]]:
+            if shared == 0:
+                return [b], a.tolist(), [db], da.tolist()
+            return a.tolist(), [b], da.tolist(), [db]
+
+        ys, xs, _, _ = tones(0, np.zeros_like(a))
+        self.operations.append(EXTRACT, ys, xs)
+        for db, da in moves:
+            ys, xs, dys, dxs = tones(db, da)
+            self.operations.append(SHIFT, ys, xs, dys, dxs)
+            for k in np.flatnonzero(da != 0) if db == 0 else range(a.size):
+                y0, x0 = (b, int(a[k])) if shared == 0 else (int(a[k]), b)
+                y1, x1 = (b + db, int(a[k] + da[k])) if shared == 0 else (int(a[k] + da[k]), b + db)
+                self._step(y0 * self.px + x0, y1 * self.px + x1)
+            b += db
+            a += da
+        ys, xs, _, _ = tones(0, np.zeros_like(a))
+        self.operations.append(IMPLANT, ys, xs)
 
     def _step(self, src: int, dst: int) -> None:
         if self._n_steps == self._steps.shape[0]:

@@ -70,11 +70,12 @@ def _slot_table(ops: Operations) -> tuple[np.ndarray, ...]:
     return tuple(a[:n].copy() for a in (ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta))
 
 
-def _pickups(slots: tuple[np.ndarray, ...], occupancy: np.ndarray, *, chain: bool, half: int) -> int:
+def _pickups(slots: tuple[np.ndarray, ...], occupancy: np.ndarray, *, chain: bool, half: int = 1) -> int:
     """Atoms the plan takes into a tweezer (extracts and captures; an atom taken twice counts twice): its slots
     played through the move model (losses off, no atom identities) from the detected ``occupancy``. The
     validator's replay counts the same but checks every slot's grammar in Python, ~35 ms for a 32x64 plan, longer
-    than the plan plays; this is the numba kernel alone."""
+    than the plan plays; this is the numba kernel alone. ``half``: positions per site of the plan's slots
+    (``engine.routing``; 2 under interstitial routing)."""
     kind, y_site, y_delta, x_site, x_delta = slots
     state = mm.MoveState(y_site.shape[1], x_site.shape[1])
     state.load(positions_of(occupancy, half))

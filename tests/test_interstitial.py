@@ -135,11 +135,12 @@ def test_decoded_half_site_positions_match_the_plan() -> None:
         assert y_tracks is not None
         assert x_tracks[:, :2].tolist() == [[xs[0], xs[0] + (dxs[0] if ops.kind[i] == SHIFT else 0)]]
         assert y_tracks[:, :2].tolist() == [[ys[0], ys[0] + (dys[0] if ops.kind[i] == SHIFT else 0)]]
-    world = World(small, lossless=True)
-    world.set_occupancy(occ)
-    world.apply_segment(decoded)
-    assert world.occupancy().tolist() == target.tolist()
-    assert world.counters.captured == 0 and world.counters.lost == 0
+    for reference in (False, True):  # the numba kernels and the plain-numpy reference world alike
+        world = World(small, lossless=True, reference=reference)
+        world.set_occupancy(occ)
+        world.apply_segment(decoded)
+        assert world.occupancy().tolist() == target.tolist()
+        assert world.counters.captured == 0 and world.counters.lost == 0 and world.counters.steps == 6
 
 
 @pytest.mark.parametrize(("pass_by", "passed_atom_kept"), [(1.0, True), (0.0, False)])

@@ -15,6 +15,7 @@ from engine.config import SystemConfig, load_config
 from engine.engine import Engine
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations, Plan
 from engine.solvers import Solver
+from engine.solvers.interstitial import InterstitialRepairPlanner
 from engine.solvers.validate import InvalidPlan, validate
 from engine.waveforms import WaveformBank
 
@@ -101,6 +102,29 @@ def test_planners_under_interstitial_routing_pass_the_validator(bulk: str) -> No
                 assert report.max_pickups_per_atom == 1
                 assert moved.sum() == int((target & ~occ).sum())
                 assert not np.any(moved & target[occ])  # no atom already in the target
+
+
+def test_the_route_kernel_writes_what_the_plain_python_routes_write() -> None:
+    rng = np.random.default_rng(11)
+    for _ in range(60):
+        ny, nx = (int(v) for v in rng.integers(2, 14, size=2))
+        occ = rng.random((ny, nx)) < rng.uniform(0.3, 0.9)
+        target = rng.random((ny, nx)) < rng.uniform(0.1, 0.6)
+        if occ.sum() < target.sum():
+            continue
+        plans = []
+        for reference in (False, True):
+            planner = InterstitialRepairPlanner(nx, ny, reference=reference)
+            planner.solve_moves(occ, target)
+            plan = planner.batch()
+            ops = plan.operations
+            plans.append(
+                [plan.steps.copy()]
+                + [a[: ops.n].copy() for a in (ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta)]
+            )
+        for kernel, reference in zip(*plans, strict=True):
+            assert np.array_equal(kernel, reference)
+        validate(planner.batch(), occ, target, trap_source="slm")
 
 
 def test_repairs_in_one_column_move_together_past_the_atoms_between() -> None:

@@ -21,6 +21,7 @@ Two planners, both writing ``Operations`` on the grid of positions (``half = 2``
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations, Plan
 from engine.routing import lattice_to_positions, n_positions
@@ -75,7 +76,9 @@ def _split_crowded(group: np.ndarray, own: int, n: int) -> list[np.ndarray]:
 class InterstitialRepairPlanner:
     """Fills the holes of any target mask from the spare atoms, each moved once along the channels."""
 
-    def __init__(self, nx: int, ny: int) -> None:
+    def __init__(self, nx: int, ny: int, *, reference: bool = False) -> None:
+        """``reference``: write the routes with the plain-Python ``_route_group`` (for tests) instead of the
+        ``route_group`` kernel."""
         if min(nx, ny) < 2:
             raise ValueError(f"interstitial routing needs channels on both axes: at least 2 x 2 traps, got {ny} x {nx}")
         self.nx, self.ny = nx, ny
@@ -84,6 +87,7 @@ class InterstitialRepairPlanner:
         self._steps = np.zeros((4 * (nx + ny) + 256, 2), dtype=np.int32)
         self._n_steps = 0
         self._plan = Plan(steps=self._steps[:0], operations=self.operations, algorithm="repair")
+        self.reference = reference
 
     def check_target(self, target: np.ndarray) -> None:
         if target.shape != (self.ny, self.nx):
@@ -105,12 +109,37 @@ class InterstitialRepairPlanner:
             chosen, spare_of = linear_sum_assignment(cost.T)  # rows: holes
             pairs = np.concatenate([spare[spare_of], holes[chosen]], axis=1)  # (r0, c0, r1, c1) per hole
             for shared, group in _groups(pairs, (self.py, self.px)):
-                self._route_group(shared, group)
+                if self.reference:
+                    self._route_group(shared, group)
+                else:
+                    self._route_group_kernel(shared, group)
         self._plan.steps = self._steps[: self._n_steps]
         return self._n_steps
 
     def batch(self) -> Plan:
         return self._plan
+
+    def _route_group_kernel(self, shared: int, group: np.ndarray) -> None:
+        """``_route_group`` by the ``route_group`` kernel, after growing the buffers to the group's size."""
+        own = 1 - shared
+        n_own = self.px if shared == 0 else self.py
+        a = 2 * group[:, own].astype(np.int64)
+        a1 = 2 * group[:, 2 + own].astype(np.int64)
+        side = _sides(a, a1, n_own)
+        travel = np.abs(a1 + side - a)
+        shared_travel = abs(2 * int(group[0, 2 + shared]) - 2 * int(group[0, shared])) + 2
+        ops = self.operations
+        ops.reserve(ops.n + int(travel.max()) + shared_travel + 3)
+        need = self._n_steps + int(travel.sum()) + a.size * (shared_travel + 1)
+        if need > self._steps.shape[0]:
+            grown = np.zeros((2 * need, 2), dtype=np.int32)
+            grown[: self._n_steps] = self._steps[: self._n_steps]
+            self._steps = grown
+        ops.n, self._n_steps = route_group(
+            shared, 2 * int(group[0, shared]), 2 * int(group[0, 2 + shared]), a, side, a1 + side,
+            self.py if shared == 0 else self.px, self.px,
+            ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, ops.n, self._steps, self._n_steps,
+        )  # fmt: skip
 
     def _route_group(self, shared: int, group: np.ndarray) -> None:
         """Move a group of spare atoms together (``_groups``): ``shared`` is the axis (0: y, 1: x) whose one tone
@@ -167,6 +196,82 @@ class InterstitialRepairPlanner:
             self._steps = np.concatenate([self._steps, np.zeros_like(self._steps)])
         self._steps[self._n_steps] = (src, dst)
         self._n_steps += 1
+
+
+@njit(cache=True, nogil=True)
+def _slot(
+    shared: int, kind: int, b: int, db: int, a: np.ndarray, da: np.ndarray, i: int,
+    out_kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
+) -> None:  # fmt: skip
+    """Slot ``i``: the shared tone at ``b`` (delta ``db``) and the own tones at ``a`` (deltas ``da``)."""
+    out_kind[i] = kind
+    s_site, s_delta = (y_site, y_delta) if shared == 0 else (x_site, x_delta)
+    o_site, o_delta = (x_site, x_delta) if shared == 0 else (y_site, y_delta)
+    s_site[i, 0] = b
+    s_delta[i, 0] = db
+    for t in range(a.size):
+        o_site[i, t] = a[t]
+        o_delta[i, t] = da[t]
+
+
+@njit(cache=True, nogil=True)
+def route_group(
+    shared: int, b0: int, b1: int, a0: np.ndarray, side: np.ndarray, channel: np.ndarray, n_shared: int, px: int,
+    kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray, n: int,
+    steps: np.ndarray, n_steps: int,
+) -> tuple[int, int]:  # fmt: skip
+    """``InterstitialRepairPlanner._route_group`` as a kernel: the group's slots from slot ``n`` and its steps
+    from ``n_steps`` (the buffers large enough, the rows cleared); returns the new ``(n, n_steps)``.
+
+    ``b0``/``b1``: the shared tone's start and end positions; ``a0``: the own tones' start positions,
+    ``channel``: where each travels along the channel, ``side``: which side of its hole that is."""
+    k = a0.size
+    a = a0.copy()
+    da = np.zeros(k, dtype=np.int64)
+    b = b0
+    _slot(shared, EXTRACT, b, 0, a, da, n, kind, y_site, y_delta, x_site, x_delta)
+    n += 1
+    sb = (1 if b1 > b0 else -1) if b1 != b0 else (1 if b0 < n_shared - 1 else -1)
+    phase = 0  # 0: shared half step, 1: own travel, 2: shared travel, 3: own half step
+    while phase < 4:
+        db = 0
+        if phase == 0:
+            db = sb
+            phase = 1
+        elif phase == 1:
+            moving = False
+            for t in range(k):
+                da[t] = (channel[t] > a[t]) - (channel[t] < a[t])
+                moving |= da[t] != 0
+            if not moving:
+                phase = 2
+                continue
+        elif phase == 2:
+            if b == b1:
+                phase = 3
+                continue
+            db = 1 if b1 > b else -1
+        else:
+            for t in range(k):
+                da[t] = -side[t]
+            phase = 4
+        _slot(shared, SHIFT, b, db, a, da, n, kind, y_site, y_delta, x_site, x_delta)
+        n += 1
+        for t in range(k):
+            if db == 0 and da[t] == 0:
+                continue
+            y0, x0, y1, x1 = b, a[t], b + db, a[t] + da[t]
+            if shared == 1:
+                y0, x0, y1, x1 = a[t], b, a[t] + da[t], b + db
+            steps[n_steps, 0] = y0 * px + x0
+            steps[n_steps, 1] = y1 * px + x1
+            n_steps += 1
+        b += db
+        for t in range(k):
+            a[t] += da[t]
+            da[t] = 0
+    _slot(shared, IMPLANT, b, 0, a, da, n, kind, y_site, y_delta, x_site, x_delta)
+    return n + 1, n_steps
 
 
 class LatticeOnPositions:

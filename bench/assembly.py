@@ -58,7 +58,7 @@ LOSS_MODELS: dict[str, tuple[float, float] | None] = {
     "0.995/0.999": (0.995, 0.999),
     "0.985/0.985": (0.985, 0.985),
 }
-LOSS_CAUSES = ("transfer", "step", "vacuum", "imaging", "collision", "dropped", "released")
+LOSS_CAUSES = ("transfer", "step", "vacuum", "imaging", "collision", "dropped", "released", "pass_by")
 
 
 @dataclass(frozen=True)
@@ -102,7 +102,10 @@ def cell_config(
         sim.update(survival_transfer=survival[0], survival_step=survival[1])
     base["loop"]["max_cycles"] = max_cycles
     if cell.planner is not None:
-        base["solver"] = planner_settings(cell.planner)  # the spec alone: no strategy or objective of the example
+        spec, _, routing = cell.planner.partition("/")
+        base["solver"] = planner_settings(spec)  # the spec alone: no strategy or objective of the example
+        if routing:
+            base["array"]["routing"] = routing
     return SystemConfig.model_validate(base)
 
 
@@ -334,7 +337,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--problems", default="32x64", help=f"comma-separated, from {', '.join(PROBLEMS)} (default 32x64)")
     p.add_argument(
         "--planners", default="example",
-        help="comma-separated planners ALGORITHM[>REPAIR@DEFECTS][:OBJECTIVE], e.g. red-rec>repair@64:survival; "
+        help="comma-separated planners ALGORITHM[>REPAIR@DEFECTS][:OBJECTIVE][/ROUTING], e.g. "
+        "red-rec>repair@64:survival/interstitial (ROUTING: array.routing, lattice or interstitial); "
         "'example': the example's own",
     )  # fmt: skip
     p.add_argument("--loss", default="0.995/0.999", help=f"comma-separated, from {', '.join(LOSS_MODELS)}")

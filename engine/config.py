@@ -159,6 +159,15 @@ class ArrayConfig(_Model):
     )
     x_tones: ToneAxisConfig = ToneAxisConfig()
     y_tones: ToneAxisConfig = ToneAxisConfig(start_hz=80e6)
+    routing: Literal["lattice", "interstitial"] = Field(
+        default="lattice",
+        description=(
+            "'lattice': tweezers move from site to site, so a loaded one cannot pass an occupied trap. "
+            "'interstitial' (slm only): each AOD also plays the frequency halfway between neighbouring tones, "
+            "tweezers move half a site per slot, and a loaded one travels along the channels between rows and "
+            "columns of traps, passing occupied traps (engine/routing.py)."
+        ),
+    )
 
     @model_validator(mode="after")
     def _chain_needs_one_row(self) -> ArrayConfig:
@@ -166,6 +175,16 @@ class ArrayConfig(_Model):
             raise ValueError(
                 f"trap_source 'aod' makes a 1D chain and needs ny = 1 (got ny = {self.ny}); "
                 "use trap_source 'slm' for a 2D grid"
+            )
+        if self.routing == "interstitial" and self.trap_source != "slm":
+            raise ValueError(
+                "routing 'interstitial' carries atoms between static traps with crossed AODs; a 1D AOD chain "
+                "(trap_source 'aod') has no channels between its traps: use routing 'lattice' or trap_source 'slm'"
+            )
+        if self.routing == "interstitial" and min(self.nx, self.ny) < 2:
+            raise ValueError(
+                f"routing 'interstitial' needs channels between rows and between columns: nx and ny must be at "
+                f"least 2 (got {self.nx} x {self.ny}); use routing 'lattice'"
             )
         return self
 
@@ -417,6 +436,13 @@ class SystemConfig(_Model):
                         f"array.{axis}.{name} = {getattr(tones, name):g} Hz must be a multiple of "
                         f"1/slot_duration_s = {grid_hz:g} Hz so static tones stay phase-continuous"
                     )
+            half_cycles = tones.spacing_hz / grid_hz / 2
+            if self.array.routing == "interstitial" and abs(half_cycles - round(half_cycles)) > 1e-6:
+                raise ValueError(
+                    f"array.{axis}.spacing_hz = {tones.spacing_hz:g} Hz: routing 'interstitial' plays the tone "
+                    f"halfway between neighbours, which must also be a whole number of cycles per slot; use a "
+                    f"multiple of 2/slot_duration_s = {2 * grid_hz:g} Hz"
+                )
             top = tones.start_hz + tones.spacing_hz * (self._n_tones(axis) - 1)
             check_below_nyquist(tones.start_hz, top, wf.sample_rate_hz, where=f"array.{axis}", error=ValueError,
                                 fix="lower start_hz/spacing_hz or raise waveforms.sample_rate_hz")

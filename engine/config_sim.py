@@ -97,6 +97,11 @@ class MoveLossConfig(_Model):
     waist_um: Annotated[float, Field(gt=0, le=100)] = 1.0
     temperature_uk: Annotated[float, Field(gt=0, le=10000)] = 15.0
     atom_mass_amu: Annotated[float, Field(gt=0, le=1000)] = Field(default=86.909, description="rubidium-87")
+    pass_by_survival: Annotated[float, Field(ge=0, le=1)] = Field(
+        default=1.0,
+        description="interstitial routing (array.routing): survival of an atom in a static trap that a moving loaded "
+        "tweezer passes half a site away, per pass (1: no cost); drawn by the simulated world only",
+    )
 
 
 class SimConfig(_Model):

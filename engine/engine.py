@@ -24,6 +24,7 @@ from engine.host import EngineCommands
 from engine.imaging import Detector, calibration_frames
 from engine.operations import Operations
 from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves, atoms_in_flight
+from engine.routing import positions_of, positions_per_site
 from engine.solvers import LossWeights, Planner, Solver, UnsolvableError
 from engine.streaming import Streamer
 from engine.targets import build_target, target_filled
@@ -69,17 +70,18 @@ def _slot_table(ops: Operations) -> tuple[np.ndarray, ...]:
     return tuple(a[:n].copy() for a in (ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta))
 
 
-def _pickups(slots: tuple[np.ndarray, ...], occupancy: np.ndarray, *, chain: bool) -> int:
+def _pickups(slots: tuple[np.ndarray, ...], occupancy: np.ndarray, *, chain: bool, half: int = 1) -> int:
     """Atoms the plan takes into a tweezer (extracts and captures; an atom taken twice counts twice): its slots
     played through the move model (losses off, no atom identities) from the detected ``occupancy``. The
     validator's replay counts the same but checks every slot's grammar in Python, ~35 ms for a 32x64 plan, longer
-    than the plan plays; this is the numba kernel alone."""
+    than the plan plays; this is the numba kernel alone. ``half``: positions per site of the plan's slots
+    (``engine.routing``; 2 under interstitial routing)."""
     kind, y_site, y_delta, x_site, x_delta = slots
-    state = mm.MoveState(*occupancy.shape)
-    state.load(occupancy)
+    state = mm.MoveState(y_site.shape[1], x_site.shape[1])
+    state.load(positions_of(occupancy, half))
     events = mm.new_events()
     mm.replay_operations(
-        kind, y_site, y_delta, x_site, x_delta, 0, len(kind), chain,
+        kind, y_site, y_delta, x_site, x_delta, 0, len(kind), chain, half,
         state.static, state.held, state.held_mark, state.ids, state.atom_stats, False, state.arrivals,
         state.tweezers, state.chain_scratch, state.y_tracks, state.x_tracks, events, False, False,
     )  # fmt: skip
@@ -104,7 +106,7 @@ def _solver(config: SystemConfig) -> Solver:
         nx=config.array.nx, ny=config.array.ny, algorithm=config.solver.algorithm,
         trap_source=config.array.trap_source, objective=config.solver.objective, loss=loss,
         repair_algorithm=None if strategy is None else strategy.repair,
-        repair_at_defects=0 if strategy is None else strategy.repair_at_defects,
+        repair_at_defects=0 if strategy is None else strategy.repair_at_defects, routing=config.array.routing,
     )  # fmt: skip
 
 
@@ -288,10 +290,13 @@ class Engine:
                     t_start_s=float(cycle_times[c, 0] - record.t_start_s),
                     t_image_s=float(cycle_times[c, 1] - record.t_start_s),
                     counts=p.counts_history[c].copy(),
-                    moves=atom_moves(steps) if (steps := p.steps_history[c]) is not None else None,
+                    moves=atom_moves(steps, nx=p.config.array.nx, half=positions_per_site(p.config.array.routing))
+                    if (steps := p.steps_history[c]) is not None
+                    else None,
                     planner=planners[c],
                     in_flight=p.in_flight_history[c],
-                    pickups=_pickups(slots, occ, chain=p.config.array.trap_source == "aod")
+                    pickups=_pickups(slots, occ, chain=p.config.array.trap_source == "aod",
+                                     half=positions_per_site(p.config.array.routing))
                     if (slots := p.slots_history[c]) is not None
                     else 0,
                     lab_report=cycle_reports[c],

@@ -23,6 +23,11 @@ y track i x x track j, at every intersection, loaded or not; a tweezer is at ful
      tweezer ramped up there this is a **pick-up** (an extract); if it was already at full depth and arrived
      (or sat) there it is a **capture**: the atom now moves with the tweezer (a **drag**) until it ramps down.
 
+**Interstitial routing** (``engine/routing.py``): the grids are of positions, ``half`` per site, and only
+positions even on both axes (``r % half == c % half == 0``) are traps. Elsewhere a tweezer is in a channel:
+no static atom is ever there, so it captures and collides with nothing in the traps, and a loaded tweezer that
+ramps down there **releases** its atom into no trap (lost). With ``half = 1`` every position is a trap.
+
 ``aod`` trap source (a 1D chain whose traps are the x tones): an atom follows the track that starts on its
 site at full depth (a step when it moves); a track that fades out holding an atom **releases** it (lost); an
 atom no track starts on is **dropped**; two atoms arriving at one site **collide**.
@@ -62,7 +67,7 @@ EV_LOST_TRANSFER = 5
 EV_LOST_STEP = 6
 EV_LOST_COLLISION = 7
 EV_LOST_DROPPED = 8  # held atoms no tweezer holds any more (slm), atoms no tone starts on (aod)
-EV_LOST_RELEASED = 9  # aod chain: a tone fading out while it holds an atom
+EV_LOST_RELEASED = 9  # aod chain: a tone fading out while it holds an atom; slm: a tweezer ramping down in a channel
 EV_FIRST_COLLISION = 10
 EV_FIRST_CAPTURE = 11
 EV_FIRST_DROP = 12  # first dropped or released atom
@@ -123,7 +128,7 @@ class MoveState:
 
 @njit(cache=True, nogil=True)
 def tweezer_slot(
-    yt: np.ndarray, xt: np.ndarray, full_fraction: float,
+    yt: np.ndarray, xt: np.ndarray, full_fraction: float, half: int,
     static: np.ndarray, held: np.ndarray, held_mark: np.ndarray, ids: np.ndarray, atom_stats: np.ndarray,
     track_ids: bool, arrivals: np.ndarray, tw: np.ndarray, u: np.ndarray, pos: int,
     draw_transfer: bool, p_transfer: float, draw_step: bool, p_step: float,
@@ -206,7 +211,11 @@ def tweezer_slot(
         c1 = tw[t, 7]
         on1 = tw[t, 1]
         if tw[t, 2]:
-            if not on1:
+            if not on1 and (r1 % half != 0 or c1 % half != 0):  # ramped down in a channel: no trap below
+                events[EV_LOST_RELEASED] += 1
+                if events[EV_FIRST_DROP] < 0:
+                    events[EV_FIRST_DROP] = r1 * nx + c1
+            elif not on1:
                 events[EV_IMPLANTED] += 1
                 ok = True
                 if draw_transfer:
@@ -260,7 +269,7 @@ def _first_per_site(candidates: np.ndarray, sites: np.ndarray) -> np.ndarray:
 
 
 def tweezer_slot_reference(
-    yt: np.ndarray, xt: np.ndarray, full_fraction: float, static: np.ndarray, held: np.ndarray,
+    yt: np.ndarray, xt: np.ndarray, full_fraction: float, half: int, static: np.ndarray, held: np.ndarray,
     mark: np.ndarray, u: np.ndarray, pos: int, p_transfer: float | None, p_step: float | None, events: np.ndarray,
 ) -> int:
     """``tweezer_slot`` in plain numpy (atom bookkeeping without identities); ``p_* = None``: no draws."""
@@ -314,7 +323,13 @@ def tweezer_slot_reference(
     static_flat[crowded] = False
     loaded &= ~collide
 
-    # 3b. implant, keep holding, or take the atom below (the first full-depth tweezer over it)
+    # 3b. implant (a release in a channel: lost), keep holding, or take the atom below (the first full-depth
+    # tweezer over it)
+    released = loaded & ~on1 & ((r1 % half != 0) | (c1 % half != 0))
+    events[EV_LOST_RELEASED] += int(np.count_nonzero(released))
+    if released.any() and events[EV_FIRST_DROP] < 0:
+        events[EV_FIRST_DROP] = end[np.flatnonzero(released)[0]]
+    loaded &= ~released
     implant = loaded & ~on1
     keep = loaded & on1
     take = np.zeros(start.size, dtype=bool)
@@ -504,7 +519,7 @@ def operation_tracks(
 @njit(cache=True, nogil=True)
 def replay_operations(
     kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
-    first: int, stop: int, chain: bool,
+    first: int, stop: int, chain: bool, half: int,
     static: np.ndarray, held: np.ndarray, held_mark: np.ndarray, ids: np.ndarray, atom_stats: np.ndarray,
     track_ids: bool, arrivals: np.ndarray, tw: np.ndarray, chain_scratch: np.ndarray, yt: np.ndarray,
     xt: np.ndarray, events: np.ndarray,
@@ -528,8 +543,8 @@ def replay_operations(
         else:
             my = operation_tracks(k, y_site[i], y_delta[i], ny, False, yt)
             mx = operation_tracks(k, x_site[i], x_delta[i], nx, False, xt)
-            tweezer_slot(yt[:my], xt[:mx], 0.5, static, held, held_mark, ids, atom_stats, track_ids, arrivals, tw, u,
-                         0, False, 1.0, False, 1.0, events)  # fmt: skip
+            tweezer_slot(yt[:my], xt[:mx], 0.5, half, static, held, held_mark, ids, atom_stats, track_ids, arrivals, tw,
+                         u, 0, False, 1.0, False, 1.0, events)  # fmt: skip
         if stop_on_fault and (
             events[EV_LOST_COLLISION] > 0 or events[EV_LOST_DROPPED] > 0 or events[EV_LOST_RELEASED] > 0
         ):

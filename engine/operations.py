@@ -45,11 +45,16 @@ class Operations:
     Row ``i`` describes slot ``i``: ``kind[i]``, and per axis the start sites of the active tones
     (``y_site[i, :]``, ``x_site[i, :]``; ascending, -1 after the last) and their one-site deltas
     (``y_delta``, ``x_delta``). ``len(ops)`` is the number of waveform slots.
+
+    ``half``: positions per site (``engine.routing``). 1: sites are traps (the lattice model). 2 (interstitial
+    routing): ``nx`` and ``ny`` count positions, ``2 n - 1`` for ``n`` traps, the odd ones between traps, and a
+    delta moves a tone half a site.
     """
 
-    def __init__(self, *, nx: int, ny: int, capacity: int = 256) -> None:
+    def __init__(self, *, nx: int, ny: int, capacity: int = 256, half: int = 1) -> None:
         self.nx = nx
         self.ny = ny
+        self.half = half
         self.n = 0
         self._alloc(max(capacity, 1))
 

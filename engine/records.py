@@ -10,6 +10,7 @@ import numpy as np
 
 from engine.move_model import MoveState, new_events, replay_operations
 from engine.operations import Operations
+from engine.routing import positions_of, trap_index
 
 __all__ = ["CycleRecord", "Outcome", "ShotRecord", "atom_moves", "atoms_in_flight", "occupancy_to_rows"]
 
@@ -26,18 +27,20 @@ def occupancy_to_rows(occupancy: np.ndarray) -> list[str]:
     return ["".join("1" if v else "0" for v in row) for row in np.asarray(occupancy, dtype=bool)]
 
 
-def atom_moves(steps: np.ndarray) -> np.ndarray:
+def atom_moves(steps: np.ndarray, *, nx: int = 0, half: int = 1) -> np.ndarray:
     """A plan's one-site steps (``int[m, 2]``: source, destination, in execution order) as one row per moved
     atom: ``int32[k, 2]`` (the trap it started in, the trap it ended in), sorted by source.
 
     An atom is followed through its steps: a step from a site where an earlier step left an atom continues
-    that atom's path. Atoms whose steps bring them back to their start do not count as moved.
+    that atom's path. Atoms whose steps bring them back to their start do not count as moved. Steps of an
+    interstitial plan (``half = 2``, an array of ``nx`` traps) are between positions; the rows are traps.
     """
     origin_of: dict[int, int] = {}  # site an atom is at now -> the trap it started the plan in
     for src, dst in np.asarray(steps, dtype=np.int64).reshape(-1, 2):
         origin_of[int(dst)] = origin_of.pop(int(src), int(src))
     moves = sorted((start, end) for end, start in origin_of.items() if start != end)
-    return np.array(moves, dtype=np.int32).reshape(-1, 2)
+    rows = np.array(moves, dtype=np.int64).reshape(-1, 2)
+    return (trap_index(rows, nx, half) if half > 1 else rows).astype(np.int32)
 
 
 def atoms_in_flight(ops: Operations, occupancy: np.ndarray, n_played: int, *, chain: bool) -> np.ndarray:
@@ -46,20 +49,21 @@ def atoms_in_flight(ops: Operations, occupancy: np.ndarray, n_played: int, *, ch
     source. This is what a failsafe holds when the card underruns there, so a shot record can say which
     atoms paused mid-move (the slots are replayed through the move model, losses off, after the cycle).
 
-    Crossed AODs: the atoms held in tweezers. A chain (``chain``, its traps are the tones themselves): the
-    atoms whose tone has carried them off their starting site.
+    Sites are flat indices on the plan's grid of positions (``engine.routing``: the traps themselves under
+    lattice routing). Crossed AODs: the atoms held in tweezers. A chain (``chain``, its traps are the tones
+    themselves): the atoms whose tone has carried them off their starting site.
     """
     occ = np.asarray(occupancy, dtype=bool)
     if not 0 <= n_played <= len(ops):
         raise ValueError(f"n_played = {n_played} is outside the plan's 0..{len(ops)} slots")
-    state = MoveState(*occ.shape)
-    state.load(occ)
+    state = MoveState(ops.ny, ops.nx)
+    state.load(positions_of(occ, ops.half))
     replay_operations(
-        ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, 0, n_played, chain,
+        ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, 0, n_played, chain, ops.half,
         state.static, state.held, state.held_mark, state.ids, state.atom_stats, True, state.arrivals,
         state.tweezers, state.chain_scratch, state.y_tracks, state.x_tracks, new_events(), False, False,
     )  # fmt: skip
-    source_of = np.flatnonzero(occ)  # atom ids are row-major ranks of the occupied traps (MoveState.load)
+    source_of = np.flatnonzero(positions_of(occ, ops.half))  # atom ids: row-major ranks (MoveState.load)
     # where atoms are now (the chain's traps, or the tweezers), and their ids (stale where no atom is)
     present, ids_now = (state.static, state.ids[0]) if chain else (state.held, state.ids[1])
     sites = np.flatnonzero(present)

@@ -71,6 +71,7 @@ from numba import njit
 
 from engine.aod_limits import PHYSICAL_MIN_SLOT_SPACING, dac_sinc_gain
 from engine.config import SystemConfig
+from engine.routing import position_tones, positions_per_site
 from engine.tones import check_below_nyquist, tones_of
 
 __all__ = [
@@ -142,11 +143,13 @@ def site_tones(config: SystemConfig, axis: str) -> tuple[np.ndarray, np.ndarray]
 
     The one place the simulated lab learns the comb, read by ``engine.tones.tones_of`` exactly as the
     waveform bank reads it: the evenly spaced ``start_hz + k * spacing_hz`` or the ``alpha,nu,phi`` CSV
-    (amplitudes are fractions of full scale).
+    (amplitudes are fractions of full scale). Under interstitial routing (``engine.routing``) the comb has a
+    position every half site, so the decoder's "sites" are positions and its tracks say where each tone is in
+    half sites (position ``2 k + 1`` is the channel between sites ``k`` and ``k + 1``).
     """
     tones = config.array.x_tones if axis == "x" else config.array.y_tones
     n = config.array.nx if axis == "x" else config.array.ny
-    site = tones_of(tones, n, axis)
+    site = position_tones(tones_of(tones, n, axis), positions_per_site(config.array.routing))
     return site.frequency_hz, site.amplitude
 
 

@@ -55,6 +55,7 @@ from engine import move_model as mm
 from engine.config import SystemConfig
 from engine.devices import Clock
 from engine.move_model import MoveState
+from engine.routing import n_positions, positions_per_site, traps_of
 
 __all__ = ["World", "WorldCounters"]
 
@@ -75,6 +76,7 @@ class WorldCounters:
     lost_released: int = 0
     lost_imaging: int = 0
     lost_trap: int = 0  # atoms a lossy trap lost (the ``set_trap_survival`` test hook)
+    lost_pass_by: int = 0  # interstitial routing: atoms in traps a loaded tweezer passed half a site away
     captured: int = 0  # atoms an empty full-depth tweezer took on arriving over them (not by ramping up)
     dragged: int = 0  # captured atoms that then moved with their tweezer
 
@@ -89,6 +91,7 @@ class WorldCounters:
             + self.lost_released
             + self.lost_imaging
             + self.lost_trap
+            + self.lost_pass_by
         )
 
     def as_dict(self) -> dict[str, int]:
@@ -155,7 +158,7 @@ class World:
         self.reseed(rng if rng is not None else np.random.default_rng(config.sim.seed))
         self.counters = WorldCounters()
         self.reference = reference
-        self.nx = self.ny = 0
+        self.nx = self.ny = self._grid_half = 0
         self.vacuum_lifetime_s = 0.0
         self.lossless = True
         self._t_s = clock.now_s() if clock is not None else 0.0
@@ -192,16 +195,24 @@ class World:
             )
             self.survival_transfer *= p_transfer
             self.survival_step *= p_step
+        # interstitial routing: a slot moves a tweezer half a site; its atom survives a half-site move with
+        # sqrt(survival_step), so a path risks the same per site however it is cut into slots
+        self.half = positions_per_site(arr.routing)
+        self.survival_tweezer_step = self.survival_step ** (1.0 / self.half)
+        self.pass_by_survival = sim.moves.pass_by_survival
         lossless = sim.lossless if lossless is None else lossless
         vacuum_changed = (sim.vacuum_lifetime_s, lossless) != (self.vacuum_lifetime_s, self.lossless)
         self.vacuum_lifetime_s = sim.vacuum_lifetime_s
         self.lossless = lossless
         self._configure_imaging(config)
-        if (arr.ny, arr.nx) != (self.ny, self.nx):
-            self.nx, self.ny = arr.nx, arr.ny
-            self._static = np.zeros((self.ny, self.nx), dtype=bool)
-            self._held = np.zeros((self.ny, self.nx), dtype=bool)  # atoms in tweezers, at the tweezer's site
-            self._move = MoveState(self.ny, self.nx)  # the move model's scratch (and how held atoms were taken)
+        if (arr.ny, arr.nx, self.half) != (self.ny, self.nx, self._grid_half):
+            self.nx, self.ny, self._grid_half = arr.nx, arr.ny, self.half
+            py, px = n_positions(self.ny, self.half), n_positions(self.nx, self.half)
+            # static atoms on the grid of positions (engine/routing.py; channels never hold one) and its traps
+            self._grid = np.zeros((py, px), dtype=bool)
+            self._static = traps_of(self._grid, self.half)
+            self._held = np.zeros((py, px), dtype=bool)  # atoms in tweezers, at the tweezer's position
+            self._move = MoveState(py, px)  # the move model's scratch (and how held atoms were taken)
             self._move_events = mm.new_events()
             vacuum_changed = True
         if vacuum_changed:
@@ -233,7 +244,8 @@ class World:
         return view
 
     def held(self) -> np.ndarray:
-        """Atoms in mobile tweezers, at their tweezer's site: read-only ``bool[ny, nx]`` (slm only)."""
+        """Atoms in mobile tweezers, at their tweezer's position: read-only ``bool`` on the grid of positions
+        (``engine.routing``: ``[ny, nx]`` under lattice routing; slm only)."""
         view = self._held.view()
         view.flags.writeable = False
         return view
@@ -252,7 +264,7 @@ class World:
 
         ``_next_hit_s[0]`` are the static traps, ``[1]`` the tweezer sites; infinite when lossless.
         """
-        self._next_hit_s = np.full((2, self.ny, self.nx), np.inf)
+        self._next_hit_s = np.full((2, *self._grid.shape), np.inf)
         if not self.lossless:
             waits = self._vacuum_draws.take(self._next_hit_s.size).reshape(self._next_hit_s.shape)
             self._next_hit_s[:] = self._t_s - self.vacuum_lifetime_s * np.log1p(-waits)
@@ -276,14 +288,14 @@ class World:
         while not done:
             u.ensure(64)
             u.pos, lost, done = _vacuum(
-                self._static, self._held, self._next_hit_s, t_s, u.buf, u.pos, self.vacuum_lifetime_s
+                self._grid, self._held, self._next_hit_s, t_s, u.buf, u.pos, self.vacuum_lifetime_s
             )
             self.counters.lost_vacuum += lost
         self._first_hit_s = float(self._next_hit_s.min())
 
     def _vacuum_reference(self, t_s: float) -> None:
         hits = self._next_hit_s.reshape(2, -1)
-        grids = (self._static.reshape(-1), self._held.reshape(-1))
+        grids = (self._grid.reshape(-1), self._held.reshape(-1))
         while True:
             kind, site = np.unravel_index(np.argmin(hits), hits.shape)
             if hits[kind, site] > t_s:
@@ -309,9 +321,11 @@ class World:
             self._apply_chain(np.ascontiguousarray(x_tracks, dtype=np.float32), events)
         else:
             yt = y_tracks if y_tracks is not None else _NO_TRACKS
-            self._apply_tweezers(
-                np.ascontiguousarray(x_tracks, dtype=np.float32), np.ascontiguousarray(yt, dtype=np.float32), events
-            )
+            xt = np.ascontiguousarray(x_tracks, dtype=np.float32)
+            yt = np.ascontiguousarray(yt, dtype=np.float32)
+            self._apply_tweezers(xt, yt, events)
+            if self.half > 1 and self.pass_by_survival < 1.0 and not self.lossless:
+                self._pass_by(xt, yt)
         e = events.tolist()  # Python ints: cheaper to add than numpy scalars, ~500 slots a shot
         c = self.counters
         c.transfers += e[mm.EV_PICKED] + e[mm.EV_CAPTURED] + e[mm.EV_IMPLANTED]
@@ -387,15 +401,44 @@ class World:
             u.ensure(need)
         if self.reference:
             u.pos = mm.tweezer_slot_reference(
-                yt, xt, FULL_FRACTION, self._static, self._held, st.held_mark, u.buf, u.pos,
-                self.survival_transfer if draw_transfer else None, self.survival_step if draw_step else None, events,
+                yt, xt, FULL_FRACTION, self.half, self._grid, self._held, st.held_mark, u.buf, u.pos,
+                self.survival_transfer if draw_transfer else None, self.survival_tweezer_step if draw_step else None,
+                events,
             )  # fmt: skip
             return
         u.pos = mm.tweezer_slot(
-            yt, xt, FULL_FRACTION, self._static, self._held, st.held_mark, st.ids, st.atom_stats, False, st.arrivals,
-            st.tweezers, u.buf, u.pos,
-            draw_transfer, self.survival_transfer, draw_step, self.survival_step, events,
+            yt, xt, FULL_FRACTION, self.half, self._grid, self._held, st.held_mark, st.ids, st.atom_stats, False,
+            st.arrivals, st.tweezers, u.buf, u.pos,
+            draw_transfer, self.survival_transfer, draw_step, self.survival_tweezer_step, events,
         )  # fmt: skip
+
+    def _pass_by(self, xt: np.ndarray, yt: np.ndarray) -> None:
+        """``sim.moves.pass_by_survival``: every occupied trap half a site from a loaded tweezer that moved this
+        slot (the two traps either side of its channel) keeps its atom with that probability, one draw per
+        trap passed, from the move stream."""
+        r, c = np.nonzero(self._held)
+        if r.size == 0:
+            return
+        py, px = self._grid.shape
+        row_moved = np.zeros(py, dtype=bool)  # a tone that ends the slot at this position moved in it
+        col_moved = np.zeros(px, dtype=bool)
+        row_moved[yt[:, 1].astype(np.int64)] = yt[:, 0] != yt[:, 1]
+        col_moved[xt[:, 1].astype(np.int64)] = xt[:, 0] != xt[:, 1]
+        moved = row_moved[r] | col_moved[c]
+        r, c = r[moved], c[moved]
+        row_channel = (r % 2 == 1) & (c % 2 == 0)  # between rows: traps above and below
+        col_channel = (r % 2 == 0) & (c % 2 == 1)  # between columns: traps left and right
+        rr = np.concatenate([r[row_channel] - 1, r[row_channel] + 1, r[col_channel], r[col_channel]])
+        cc = np.concatenate([c[row_channel], c[row_channel], c[col_channel] - 1, c[col_channel] + 1])
+        inside = (rr >= 0) & (rr < py) & (cc >= 0) & (cc < px)
+        rr, cc = rr[inside], cc[inside]
+        hit = self._grid[rr, cc]
+        rr, cc = rr[hit], cc[hit]
+        if rr.size == 0:
+            return
+        lost = self._move_draws.take(rr.size) >= self.pass_by_survival
+        self._grid[rr[lost], cc[lost]] = False
+        self.counters.lost_pass_by += int(lost.sum())
 
     def apply_segment(self, decoded: DecodedSegment, t0_s: float | None = None, slot_s: float = 0.0) -> None:
         """Apply every slot of a decoded segment (vacuum loss up to each slot's start when ``t0_s`` is given)."""
@@ -489,8 +532,8 @@ def _warm_up() -> None:
     st = MoveState(1, 1)
     ev = mm.new_events()
     mm.tweezer_slot(
-        one, one, 0.5, st.static, st.held, st.held_mark, st.ids, st.atom_stats, False, st.arrivals, st.tweezers, u, 0,
-        False, 1.0, False, 1.0, ev,
+        one, one, 0.5, 1, st.static, st.held, st.held_mark, st.ids, st.atom_stats, False, st.arrivals, st.tweezers,
+        u, 0, False, 1.0, False, 1.0, ev,
     )  # fmt: skip
     mm.chain_slot(one, 0.5, st.static[0], st.ids[0, 0], st.atom_stats, False, st.chain_scratch, u, 0, False, 1.0, ev)
     _kernels_warm = True

@@ -94,10 +94,20 @@ OBJECTIVES: tuple[str, ...] = ("slots", "transfers", "survival")
 OBJECTIVE_AWARE: frozenset[str] = frozenset({"aod-parallel", "repair"})
 
 
-def _build(algorithm: str, nx: int, ny: int, trap_source: str, objective: str, loss: LossWeights | None) -> Planner:
+def _build(
+    algorithm: str, nx: int, ny: int, trap_source: str, objective: str, loss: LossWeights | None, routing: str
+) -> Planner:
     factory = _FACTORIES.get(algorithm)
     if factory is None:
         raise PlannerError(f"solver.algorithm {algorithm!r} is not known; choose one of {', '.join(ALGORITHMS)}")
+    if routing == "interstitial":
+        # deferred: only interstitial routing needs it. The repair planner routes along the channels; any other
+        # planner plans on the lattice and its plans are written on the grid of positions (engine.routing)
+        from engine.solvers.interstitial import InterstitialRepairPlanner, LatticeOnPositions
+
+        if algorithm == "repair":
+            return InterstitialRepairPlanner(nx, ny)
+        return LatticeOnPositions(_build(algorithm, nx, ny, trap_source, objective, loss, "lattice"))
     try:
         if algorithm == "repair":
             return _repair(nx, ny, trap_source, objective, loss)
@@ -117,6 +127,7 @@ class Solver:
     With ``repair_algorithm`` set, a per-cycle strategy: ``algorithm`` (the bulk planner) while the target has
     more than ``repair_at_defects`` empty traps, ``repair_algorithm`` from then on (``StrategyPlanner``). The
     plan's ``algorithm`` names the planner that made it. ``loss`` weighs the ``survival`` objective.
+    ``routing`` (``array.routing``): under ``interstitial`` the plans list positions (``engine.routing``).
     """
 
     def __init__(
@@ -130,15 +141,16 @@ class Solver:
         loss: LossWeights | None = None,
         repair_algorithm: str | None = None,
         repair_at_defects: int = 0,
+        routing: str = "lattice",
     ) -> None:
         if objective not in OBJECTIVES:
             raise PlannerError(f"solver.objective {objective!r} is not known; choose one of {', '.join(OBJECTIVES)}")
         self.nx, self.ny = nx, ny  # the array it plans for (``Planner``)
-        self.planner = _build(algorithm, nx, ny, trap_source, objective, loss)
+        self.planner = _build(algorithm, nx, ny, trap_source, objective, loss, routing)
         if repair_algorithm is not None:
             from engine.solvers.strategy import StrategyPlanner  # deferred: only a strategy needs it
 
-            repair = _build(repair_algorithm, nx, ny, trap_source, objective, loss)
+            repair = _build(repair_algorithm, nx, ny, trap_source, objective, loss, routing)
             try:
                 self.planner = StrategyPlanner(self.planner, repair, repair_at_defects=repair_at_defects)
             except ValueError as err:
@@ -192,7 +204,7 @@ def solve(
 
 def _copy_plan(plan: Plan) -> Plan:
     src = plan.operations
-    ops = Operations(nx=src.nx, ny=src.ny, capacity=max(len(src), 1))
+    ops = Operations(nx=src.nx, ny=src.ny, capacity=max(len(src), 1), half=src.half)
     n = len(src)
     for name in ("kind", "y_site", "y_delta", "x_site", "x_delta"):
         getattr(ops, name)[:n] = getattr(src, name)[:n]

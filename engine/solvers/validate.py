@@ -18,6 +18,11 @@ Grammar (``docs/ARCHITECTURE.md``; the crossed-AOD model is worked through in ``
 - ``IMPLANT``: the listed tones are the tweezers, and they ramp down;
 - nothing may be held at the end.
 
+Interstitial routing (``ops.half = 2``, ``engine/routing.py``): the tones list positions, half a site apart, of
+which the even ones are sites; a delta moves a tone half a site; the tones of a slot stay at least a whole site
+apart (two tones closer than that would make one tweezer); a tweezer may ramp down only over a trap (in a
+channel its atom is lost); the plan's steps are half-site steps between neighbouring positions.
+
 Physics (the move model): a loaded tweezer may not meet an atom (moving onto one, or implanting onto one);
 an ``IDLE`` slot while atoms are held drops them (the AWG plays silence). An atom that an empty tweezer
 captures on its way, or that an extract picks up, must be one the plan's steps move (it is **accounted**);
@@ -38,6 +43,7 @@ import numpy as np
 
 from engine import move_model as mm
 from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations, OpKind, Plan
+from engine.routing import n_positions, position_name, positions_of, trap_index, traps_of
 
 __all__ = ["InvalidPlan", "PlanReport", "replay", "replay_steps", "validate"]
 
@@ -94,6 +100,8 @@ def _check_tones(ops: Operations, i: int, sites: np.ndarray, deltas: np.ndarray,
         raise _fail(ops, i, f"{axis} tone off the array (0..{n - 1})")
     if np.any(np.diff(sites) <= 0):
         raise _fail(ops, i, f"{axis} tones are not strictly ascending")
+    if np.any(np.diff(sites) < ops.half):
+        raise _fail(ops, i, f"{axis} tones less than a site apart (one tweezer, not two)")
     if np.any(np.abs(deltas) > 1):
         raise _fail(ops, i, f"{axis} tone moves more than one site")
 
@@ -151,8 +159,9 @@ def _check_tweezer_grammar(ops: Operations, ny: int, nx: int) -> int:
             ny1, nx1 = ty + dys, tx + dxs
             if ny1.size and (ny1.min() < 0 or ny1.max() >= ny) or nx1.size and (nx1.min() < 0 or nx1.max() >= nx):
                 raise _fail(ops, i, "a tweezer leaves the array")
-            if np.any(np.diff(ny1) <= 0) or np.any(np.diff(nx1) <= 0):
-                raise _fail(ops, i, "tones cross or merge")
+            if np.any(np.diff(ny1) < ops.half) or np.any(np.diff(nx1) < ops.half):
+                why = "tones cross or merge" if ops.half == 1 else "tones cross, merge or come within a site"
+                raise _fail(ops, i, why)
             ty, tx = ny1, nx1
         elif kind == IMPLANT:
             on = False
@@ -168,15 +177,16 @@ def _play(
     events = mm.new_events()
     n = len(ops)
     at = mm.replay_operations(
-        ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, 0, n, chain,
+        ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, 0, n, chain, ops.half,
         state.static, state.held, state.held_mark, state.ids, state.atom_stats, True, state.arrivals,
         state.tweezers, state.chain_scratch, state.y_tracks, state.x_tracks, events, True, stop_on_capture,
     )  # fmt: skip
     return at, events
 
 
-def _site(flat: int, nx: int) -> str:
-    return f"row {flat // nx}, col {flat % nx}"
+def _site(flat: int, nx: int, half: int = 1) -> str:
+    """A flat index on a grid of ``nx`` columns of positions (``half`` per site) in sites."""
+    return position_name(flat, nx, half)
 
 
 def replay(ops: Operations, occupancy: np.ndarray, *, trap_source: str) -> PlanReport:
@@ -185,9 +195,11 @@ def replay(ops: Operations, occupancy: np.ndarray, *, trap_source: str) -> PlanR
     Captures are counted in the report, not rejected here: only ``validate`` knows whether the plan's steps
     account for them.
     """
-    ny, nx = occupancy.shape
+    half = ops.half
+    ny, nx = n_positions(occupancy.shape[0], half), n_positions(occupancy.shape[1], half)
     if (ops.ny, ops.nx) != (ny, nx):
-        raise InvalidPlan(f"operations are for a {ops.ny}x{ops.nx} array, occupancy is {ny}x{nx}")
+        raise InvalidPlan(f"operations are for a {ops.ny}x{ops.nx} array, occupancy is {ny}x{nx}"
+                          + (" (in positions: interstitial routing)" if half > 1 else ""))
     if trap_source == "aod":
         _check_chain_grammar(ops, nx)
         batches = len(ops)
@@ -197,14 +209,16 @@ def replay(ops: Operations, occupancy: np.ndarray, *, trap_source: str) -> PlanR
         raise ValueError(f"trap_source must be 'aod' or 'slm' (got {trap_source!r})")
     chain = trap_source == "aod"
     state = mm.MoveState(ny, nx)
-    state.load(occupancy)
+    state.load(positions_of(occupancy, half))
     at, ev = _play(ops, state, chain)
     if at < len(ops):
         if ev[mm.EV_LOST_COLLISION]:
-            where = _site(int(ev[mm.EV_FIRST_COLLISION]), nx)
+            where = _site(int(ev[mm.EV_FIRST_COLLISION]), nx, half)
             why = f"two atoms meet at {where}" if chain else f"a loaded tweezer lands on the atom at {where}"
             raise _fail(ops, at, why)
-        where = _site(int(ev[mm.EV_FIRST_DROP]), nx)
+        where = _site(int(ev[mm.EV_FIRST_DROP]), nx, half)
+        if ev[mm.EV_LOST_RELEASED] and not chain:
+            raise _fail(ops, at, f"a loaded tweezer ramps down at {where}, between traps (its atom is lost)")
         if chain:
             raise _fail(ops, at, f"a moving tone enters {where}, which holds an atom (its own tone fades out under it)")
         if int(ops.kind[at]) == IDLE:
@@ -218,7 +232,7 @@ def replay(ops: Operations, occupancy: np.ndarray, *, trap_source: str) -> PlanR
     occupied = np.flatnonzero(flat_id >= 0)
     site[flat_id[occupied]] = occupied
     return PlanReport(
-        occupancy=state.static.copy(),
+        occupancy=traps_of(state.static, half).copy(),
         slots=len(ops),
         batches=batches,
         steps=int(ev[mm.EV_STEPS]),
@@ -230,7 +244,7 @@ def replay(ops: Operations, occupancy: np.ndarray, *, trap_source: str) -> PlanR
         atom_steps=stats[:, mm.STAT_STEPS].copy(),
         atom_pickups=stats[:, mm.STAT_PICKUPS].copy(),
         atom_captures=stats[:, mm.STAT_CAPTURES].copy(),
-        atom_site=site,
+        atom_site=trap_index(site, occupancy.shape[1], half),
     )
 
 
@@ -256,8 +270,12 @@ def _replay_ident(ops: Operations, ident: np.ndarray, steps: np.ndarray, pickups
     return report.batches
 
 
-def _replay_steps_ident(steps: np.ndarray, occupancy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``replay_steps`` following each atom: (final occupancy, steps per atom, final trap per atom)."""
+def _replay_steps_ident(
+    steps: np.ndarray, traps: np.ndarray, half: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``replay_steps`` following each atom: (final occupancy, steps per atom, final trap per atom). With
+    ``half = 2`` the steps are between positions (half-site steps, ``engine.routing``)."""
+    occupancy = positions_of(traps, half)
     nx = occupancy.shape[1]
     ident = np.full(occupancy.size, -1, dtype=np.int64)
     n_atoms = int(occupancy.sum())
@@ -267,14 +285,18 @@ def _replay_steps_ident(steps: np.ndarray, occupancy: np.ndarray) -> tuple[np.nd
         if ident[src] < 0 or ident[dst] >= 0:
             raise InvalidPlan(f"step {k} ({src} -> {dst}): source empty or destination occupied")
         if abs(src // nx - dst // nx) + abs(src % nx - dst % nx) != 1:
-            raise InvalidPlan(f"step {k} ({src} -> {dst}) is not between neighbouring traps")
+            raise InvalidPlan(f"step {k} ({src} -> {dst}) is not between neighbouring "
+                              + ("traps" if half == 1 else "positions (half a site apart)"))
         per_atom[ident[src]] += 1
         ident[dst] = ident[src]
         ident[src] = -1
     site = np.full(n_atoms, -1, dtype=np.int64)
     occupied = np.flatnonzero(ident >= 0)
     site[ident[occupied]] = occupied
-    return (ident >= 0).reshape(occupancy.shape), per_atom, site
+    final = (ident >= 0).reshape(occupancy.shape)
+    if np.any(final & ~positions_of(traps_of(final, half), half)):
+        raise InvalidPlan("the plan's steps leave an atom between traps")
+    return traps_of(final, half).copy(), per_atom, trap_index(site, traps.shape[1], half)
 
 
 def replay_steps(steps: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
@@ -291,16 +313,18 @@ def validate(plan: Plan, occupancy: np.ndarray, target: np.ndarray, *, trap_sour
     """
     report = replay(plan.operations, occupancy, trap_source=trap_source)
     nx = occupancy.shape[1]
-    after_steps, plan_atom_steps, plan_atom_site = _replay_steps_ident(plan.steps, occupancy)
+    after_steps, plan_atom_steps, plan_atom_site = _replay_steps_ident(plan.steps, occupancy, plan.operations.half)
     start = np.flatnonzero(np.asarray(occupancy).ravel())
     unaccounted = np.flatnonzero((report.atom_captures > 0) & (plan_atom_steps == 0))
     if unaccounted.size:
-        state = mm.MoveState(*occupancy.shape)
-        state.load(occupancy)
-        at, ev = _play(plan.operations, state, trap_source == "aod", stop_on_capture=True)
+        ops = plan.operations
+        state = mm.MoveState(ops.ny, ops.nx)
+        state.load(positions_of(occupancy, ops.half))
+        at, ev = _play(ops, state, trap_source == "aod", stop_on_capture=True)
         raise _fail(
-            plan.operations, at,
-            f"an empty tweezer at full depth arrives over the atom at {_site(int(ev[mm.EV_FIRST_CAPTURE]), nx)} "
+            ops, at,
+            f"an empty tweezer at full depth arrives over the atom at "
+            f"{_site(int(ev[mm.EV_FIRST_CAPTURE]), ops.nx, ops.half)} "
             f"and captures it; {unaccounted.size} atom(s) are disturbed that the plan's steps do not move "
             f"(first from {_site(int(start[unaccounted[0]]), nx)})",
         )  # fmt: skip

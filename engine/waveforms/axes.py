@@ -10,6 +10,7 @@ import numpy as np
 
 from engine.aod_limits import sample_amplitudes
 from engine.config import ConfigError, SystemConfig, ToneAxisConfig
+from engine.routing import position_tones, positions_per_site
 from engine.tones import Tones, check_below_nyquist, tones_of
 
 
@@ -48,7 +49,8 @@ def axis_tones(config: SystemConfig, axis: str) -> Tones:
     tc, n = _axis_config(config, axis)
     wf = config.waveforms
     where = f"array.{axis}_tones" + (".csv" if tc.csv is not None else "")
-    freq, amp, phase = tones_of(tc, n, axis)
+    half = positions_per_site(config.array.routing)
+    freq, amp, phase = position_tones(tones_of(tc, n, axis), half)
     cycles = freq * wf.slot_duration_s
     bad = np.flatnonzero(np.abs(cycles - np.round(cycles)) > 1e-6)
     if bad.size:
@@ -67,8 +69,14 @@ def axis_tones(config: SystemConfig, axis: str) -> Tones:
     if np.any(amp <= 0) or np.any(amp > 1):
         k = int(np.flatnonzero((amp <= 0) | (amp > 1))[0])
         raise ConfigError(f"{where}: tone {k} amplitude {amp[k]:g} must be in (0, 1] (a fraction of full scale)")
+    m = np.round(cycles).astype(np.int64)
     if tc.csv is None and tc.phases == "continuous":
-        phase = continuous_phases(np.round(cycles).astype(np.int64), wf.slot_samples)
+        phase = continuous_phases(m, wf.slot_samples)
+    elif half == 2:  # a midpoint: the phase a tone from the site below reaches with no correction
+        phase = np.asarray(phase, dtype=np.float64).copy()
+        n_samples = wf.slot_samples
+        turns = ((m[1::2] - m[:-1:2]) * (n_samples - 1)) % (2 * n_samples)
+        phase[1::2] = np.mod(phase[:-1:2] + np.pi * turns / n_samples, 2 * np.pi)
     return Tones(freq, amp, np.asarray(phase, dtype=np.float64))
 
 
@@ -86,16 +94,18 @@ def axes_of(config: SystemConfig) -> tuple[str, ...]:
 
 
 def check_headroom(config: SystemConfig, tones: dict[str, Tones] | None = None) -> None:
-    """Raise ``ValueError`` if an axis could clip: its worst case (the sum of its n sample amplitudes, one
-    tone per site, compensated for the DAC's sinc roll-off when so configured) must be at most 1.0 of full
-    scale."""
+    """Raise ``ValueError`` if an axis could clip: its worst case (the sum of its n largest sample amplitudes,
+    one tone per site, compensated for the DAC's sinc roll-off when so configured; under interstitial routing
+    the comb also holds the midpoints, but tones stay a site apart, so at most n of them play) must be at most
+    1.0 of full scale."""
     for axis in axes_of(config):
         t = tones[axis] if tones is not None else axis_tones(config, axis)
+        n = _axis_config(config, axis)[1]
         amps = tone_sample_amplitudes(config, t)
-        worst = float(np.sum(amps))
+        loudest = np.argsort(amps)[::-1][:n]
+        worst = float(np.sum(amps[loudest]))
         if worst > 1.0 + 1e-12:
-            n = t.amplitude.size
-            gain = float(np.sum(t.amplitude) / worst)
+            gain = float(np.sum(t.amplitude[loudest]) / worst)
             why = " (compensated for the DAC's sinc roll-off: waveforms.compensate_dac_sinc)" if gain < 1 else ""
             raise ValueError(
                 f"array.{axis}_tones: the {n} tones can sum to {worst:.4g} of full scale{why}, so int16 samples "

@@ -9,6 +9,7 @@ import numpy as np
 
 from engine.config import SystemConfig
 from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations
+from engine.routing import n_positions, positions_per_site
 from engine.waveforms.axes import axes_of, axis_tones, check_headroom, tone_sample_amplitudes
 from engine.waveforms.kernels import (
     _E_ARRAY,
@@ -26,7 +27,7 @@ from engine.waveforms.shapes import CHAIN_KINDS, FULL_SCALE, KIND_NAMES, N_KINDS
 def table_formula_bytes(config: SystemConfig) -> int:
     """Bytes of the full lookup table: ``2 * slot_samples * sum over axes (n_sites * n_kinds)``."""
     kinds = len(CHAIN_KINDS) if config.array.trap_source == "aod" else len(SLM_KINDS)
-    sites = config.array.nx if config.array.trap_source == "aod" else config.array.nx + config.array.ny
+    sites = config.array.nx if config.array.trap_source == "aod" else sum(_positions(config))
     return 2 * config.waveforms.slot_samples * sites * kinds
 
 
@@ -34,7 +35,13 @@ def prefix_formula_bytes(config: SystemConfig) -> int:
     """Bytes of the full prefix tables (slm only): ``4 * slot_samples * sum over axes ((n_sites + 1) * 5)``."""
     if config.array.trap_source == "aod":
         return 0
-    return 4 * config.waveforms.slot_samples * (config.array.nx + config.array.ny + 2) * len(SLM_KINDS)
+    return 4 * config.waveforms.slot_samples * (sum(_positions(config)) + 2) * len(SLM_KINDS)
+
+
+def _positions(config: SystemConfig) -> tuple[int, int]:
+    """Tones per axis, (x, y): a site each, and under interstitial routing the midpoints too (``engine.routing``)."""
+    half = positions_per_site(config.array.routing)
+    return n_positions(config.array.nx, half), n_positions(config.array.ny, half)
 
 
 class WaveformBank:
@@ -52,9 +59,10 @@ class WaveformBank:
         self.axes = axes_of(config)
         self.tones = {ax: axis_tones(config, ax) for ax in self.axes}
         check_headroom(config, self.tones)
-        self.nx, self.ny = arr.nx, arr.ny
-        self.n_max = max(arr.nx, arr.ny)
-        self._n_sites = np.array([arr.nx, arr.ny], dtype=np.int64)
+        self.half = positions_per_site(arr.routing)
+        self.nx, self.ny = _positions(config)  # the tones (positions) per axis, what a plan's slots list
+        self.n_max = max(self.nx, self.ny)
+        self._n_sites = np.array([self.nx, self.ny], dtype=np.int64)
         self._cyc = np.zeros((2, self.n_max), dtype=np.int64)
         self._amp = np.zeros((2, self.n_max), dtype=np.float64)
         self._phi = np.zeros((2, self.n_max), dtype=np.float64)
@@ -137,7 +145,7 @@ class WaveformBank:
             self._base[0] = hold.astype(np.float32)
         self._hold = np.ascontiguousarray(np.clip(np.rint(self._base.T), -32767, 32767).astype(np.int16))
 
-        self.stride = 2 + (arr.nx if self.chain else arr.nx + arr.ny)
+        self.stride = 2 + (arr.nx if self.chain else self.nx + self.ny)
         self._acc = np.zeros((self.n_channels, n), dtype=np.int32)
         self._scratch = np.zeros((4, n), dtype=np.int16)
         self._fs_keys = np.zeros(self.stride, dtype=np.int64)
@@ -266,7 +274,7 @@ class WaveformBank:
 
     def _warm_up(self) -> None:
         """Compile (or load from numba's cache) every kernel now, not during the first cycle."""
-        ops = Operations(nx=self.nx, ny=self.ny, capacity=4)
+        ops = Operations(nx=self.nx, ny=self.ny, capacity=4, half=self.half)
         if self.chain:
             if self.nx >= 2:
                 ops.append(SHIFT, [0], [0], [0], [1])

@@ -104,7 +104,8 @@ class FrameKeeping:
 class _RunFile:
     """One open run file: fixed shapes from its configuration, appended one shot at a time."""
 
-    def __init__(self, path: Path, config: SystemConfig, frames: FrameKeeping) -> None:
+    def __init__(self, path: Path, config: SystemConfig, frames: FrameKeeping | None = None) -> None:
+        frames = frames if frames is not None else FrameKeeping()  # none kept
         self.path = path
         self.digest = config.digest()
         arr = config.array

@@ -125,7 +125,7 @@ def _balance(
         cnt[c] = n
     guard = 0
     while True:
-        recv = -1
+        recv = int(-1)  # noqa: UP018  # a call, not a literal: see plan_rect's counters
         worst = 0
         for x in range(c0, c1):
             d = h_rows - cnt[x]
@@ -288,8 +288,8 @@ def _relay_one(
 ) -> tuple[int, int, int, int, bool]:
     """The cheapest single relay into ``recv`` from any column with atoms to spare (ok = False if none)."""
     best = -1
-    best_a = -1
-    best_r = -1
+    best_a = int(-1)  # noqa: UP018  # a call, not a literal: see plan_rect's counters
+    best_r = int(-1)  # noqa: UP018  # (the same)
     for a in range(nc):
         sur = cnt[a] - h_rows if c0 <= a < c1 else cnt[a]
         if sur <= 0 or a == recv:

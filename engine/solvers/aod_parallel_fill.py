@@ -425,7 +425,9 @@ def _fill_phase(
         st[c, _B] = 0
         st[c, _WTOP] = 0
         st[c, _WBOT] = 0
-        _col_update(c, nr, nwr, r0, r1, True, ob, prow, st, cm, vt, ut, vb, ub, sct, scb, ptop, pbot)
+        # bool(True), not True: a literal argument would compile a copy of _col_update of its own (plan_rect)
+        dyn_all = bool(True)  # noqa: UP018  # a call, not a literal
+        _col_update(c, nr, nwr, r0, r1, dyn_all, ob, prow, st, cm, vt, ut, vb, ub, sct, scb, ptop, pbot)
     if dedicated:
         return OK, nb, nrr, ncr, n_steps
     # re-chosen windows make the greedy's progress hard to bound, so cap its batches; past the cap (never
@@ -448,7 +450,7 @@ def _fill_phase(
         n_t = _top_k(sct, 1, nr, it, tv, k_best)
         n_b = _top_k(scb, 0, nr - 1, ib, bv, k_best)
         if n_t == 0 and n_b == 0:
-            worst = -1
+            worst = int(-1)  # noqa: UP018  # a call, not a literal: see plan_rect's counters
             for c in range(c0, c1):
                 if st[c, _T] > 0 or st[c, _B] > 0:
                     if worst < 0 or max(st[c, _T], st[c, _B]) > max(st[worst, _T], st[worst, _B]):
@@ -493,7 +495,7 @@ def _fill_phase(
                     best = s
                     best_h = h
                     best_hp = hp
-        n_cols = 0
+        n_cols = int(0)  # noqa: UP018  # a call, not a literal: see plan_rect's counters
         for w in range(nwc):
             if best_h > 0 and best_hp < nr - 1:
                 x = vt[best_h, w] & vb[best_hp, w] & (ut[best_h, w] | ub[best_hp, w])

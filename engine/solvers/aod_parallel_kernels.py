@@ -77,9 +77,14 @@ def plan_rect(
                 total += 1
     if total < (r1 - r0) * (c1 - c0):
         return UNSOLVABLE, 0, 0, 0
+    # The counters start as int(0), a call, not as literal 0s. numba types a literal as a type of its own
+    # (Literal[int](0)), and while it infers a loop that grows a counter it meets the counter with that type
+    # first and compiles a copy of every callee for it: ~30 s of the planner's cold compilation went to such
+    # copies. Initialisers that reach a call (the -1s and 0s in _balance, _relay_one, _fill_phase) do the same.
+    zero = int(0)  # noqa: UP018  # a call, not a literal
     status, nb, nrr, ncr, n_steps = _balance(
         g, nc, nr, r0, r1, c0, c1, cnt, cand, key, carried, transposed, nx,
-        bmeta, 0, brow, brs, brm, 0, bcol, bcs, bcm, 0, steps, 0,
+        bmeta, zero, brow, brs, brm, zero, bcol, bcs, bcm, zero, steps, zero,
     )  # fmt: skip
     if status != OK:
         return status, 0, 0, 0

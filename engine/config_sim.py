@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from engine.config_base import Fraction, _Model
 from engine.timing import REPLAY_HOST_S, STAGES
@@ -60,9 +60,13 @@ class SimImagingConfig(_Model):
         default=0.005, description="mean spurious electrons per sensor pixel per readout (EMCCD clock-induced charge)"
     )
     quantum_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
-    read_noise_e: Annotated[float, Field(ge=0, le=1e4)] = 60.0
+    read_noise_e: Annotated[float, Field(ge=0, le=1e4)] = Field(
+        default=60.0, description="rms read noise at 30 MHz (electrons); 0 for a noise-free readout, else >= 1e-3"
+    )
     bias_counts: Annotated[float, Field(ge=0, le=65535)] = 500.0
-    electrons_per_count: Annotated[float, Field(gt=0, le=1e6)] = 20.0
+    electrons_per_count: Annotated[float, Field(ge=1e-3, le=1e6)] = Field(
+        default=20.0, description="electrons per ADC count after the EM register's output (>= 1e-3)"
+    )
     loss_rate_hz: Annotated[float, Field(ge=0, le=1e4)] = Field(
         default=0.5,
         description="probability per second of exposure that an imaged atom is heated out (0.5: 1 % per 20 ms)",
@@ -73,6 +77,17 @@ class SimImagingConfig(_Model):
     beam_edge_brightness: Annotated[float, Field(gt=0, le=1)] = Field(
         default=0.9, description="brightness at the array's corners relative to its centre (Gaussian imaging beam)"
     )
+
+    @field_validator("read_noise_e")
+    @classmethod
+    def _noise_free_or_physical(cls, value: float) -> float:
+        # the camera model divides by the read noise; below 1e-3 e it is no physical amplifier and overflows
+        if 0.0 < value < 1e-3:
+            raise ValueError(
+                f"sim.imaging.read_noise_e {value:g} e is below 1e-3 e: use 0 for a noise-free readout, or a real "
+                "amplifier's noise (the iXon 888: ~60 e at 30 MHz before EM gain)"
+            )
+        return value
 
 
 class MoveLossConfig(_Model):

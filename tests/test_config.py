@@ -62,3 +62,11 @@ def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
 def test_defaults_are_valid() -> None:
     config = SystemConfig()
     assert config.waveforms.slot_samples == 6240
+
+
+@pytest.mark.parametrize("imaging", [{"read_noise_e": 5e-324}, {"electrons_per_count": 5e-324}])
+def test_denormal_camera_physics_is_refused(imaging: dict) -> None:
+    """A schemathesis find: a denormal read noise or ADC gain overflowed the simulated camera's noise model."""
+    with pytest.raises(ConfigError, match=f"sim.imaging.{next(iter(imaging))}"):
+        config_from_dict({"sim": {"imaging": imaging}})
+    assert config_from_dict({"sim": {"imaging": {"read_noise_e": 0.0}}}).sim.imaging.read_noise_e == 0.0

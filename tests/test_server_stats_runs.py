@@ -12,12 +12,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from engine.engine import EngineThread
 from engine.records import CycleRecord, Outcome, ShotRecord
 from server.app import create_app
 from server.runstore import RunStore
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
+from server_fakes import example_config, fake_lab_service
 
 TOKEN = "stats-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -25,16 +24,8 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 @pytest.fixture
 def lab(tmp_path: Path) -> Iterator[LabService]:
-    config = example_config()
-    service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(config)),  # type: ignore[arg-type, return-value]  # a FakeEngine stands in for Engine
-        store=RunStore(tmp_path / "runs"),
-        pause_s=0.01,
-    ).start()
-    try:
+    with fake_lab_service(tmp_path / "runs") as service:
         yield service
-    finally:
-        service.close()
 
 
 @pytest.fixture

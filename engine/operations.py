@@ -26,7 +26,18 @@ from enum import IntEnum
 import numpy as np
 from numba import njit
 
-__all__ = ["IDLE", "EXTRACT", "SHIFT", "IMPLANT", "OpKind", "Operations", "Plan", "batch_slot_kind", "clear_slots"]
+__all__ = [
+    "EXTRACT",
+    "IDLE",
+    "IMPLANT",
+    "SHIFT",
+    "OpKind",
+    "Operations",
+    "Plan",
+    "batch_slot_kind",
+    "clear_slots",
+    "make_room",
+]
 
 
 class OpKind(IntEnum):
@@ -160,6 +171,19 @@ def batch_slot_kind(t: int, n_shift: int) -> int:
     if t == n_shift + 1:
         return IMPLANT
     return SHIFT
+
+
+@njit(cache=True, nogil=True)
+def make_room(
+    need: int, n_prev: int, kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray,
+    x_delta: np.ndarray, y_used: np.ndarray, x_used: np.ndarray,
+) -> bool:
+    """Whether the table holds a plan of ``need`` slots; if it does, the previous plan's ``n_prev`` slots are
+    cleared (``clear_slots``), else nothing is touched (the planner grows the table and writes again)."""
+    if need > kind.shape[0]:
+        return False
+    clear_slots(n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
+    return True
 
 
 @njit(cache=True, nogil=True)

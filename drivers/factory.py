@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from engine.aod_limits import SegmentGuard
 from engine.config import DevicesConfig, SystemConfig
@@ -26,6 +26,13 @@ if TYPE_CHECKING:
     from engine.engine import Lab
 
 __all__ = ["HostClock", "available_devices", "open_devices"]
+
+
+class _Openable(Protocol):
+    def open(self) -> None: ...
+
+
+_Device = TypeVar("_Device", bound=_Openable)
 
 class HostClock:
     """Wall time on hardware: the host's monotonic high-resolution clock."""
@@ -75,11 +82,8 @@ def open_devices(
         if d.awg == "spectrum":
             from drivers.spectrum import SpectrumAWG
 
-            spectrum = SpectrumAWG(d.spectrum, spcm_module=spcm_module,
-                                   rf_guard=SegmentGuard(config.channel_limits(), config.waveforms.slot_samples))
-            spectrum.open()
-            opened.append(spectrum)
-            awg = spectrum
+            guard = SegmentGuard(config.channel_limits(), config.waveforms.slot_samples)
+            awg = _opened(SpectrumAWG(d.spectrum, spcm_module=spcm_module, rf_guard=guard), opened)
         else:
             assert sim_parts is not None
             awg = sim_parts.awg
@@ -92,10 +96,7 @@ def open_devices(
                 from drivers.activesilicon import ActiveSiliconFrameSource
 
                 source = ActiveSiliconFrameSource(d.activesilicon, library=phx_library)
-            andor = AndorCamera(d.andor, frame_source=source, sdk_module=andor_module, clock=clock)
-            andor.open()
-            opened.append(andor)
-            camera = andor
+            camera = _opened(AndorCamera(d.andor, frame_source=source, sdk_module=andor_module, clock=clock), opened)
         else:
             assert sim_parts is not None
             camera = sim_parts.camera
@@ -107,6 +108,13 @@ def open_devices(
                 pass
         raise
     return _HardwareDeviceSet(camera=camera, awg=awg, clock=clock), None
+
+
+def _opened(device: _Device, opened: list[Any]) -> _Device:
+    """``device`` opened, and listed in ``opened`` (closed again if a later device fails to open)."""
+    device.open()
+    opened.append(device)
+    return device
 
 
 def _entry(role: str, name: str, selected: bool, available: bool, detail: str) -> dict[str, Any]:

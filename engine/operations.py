@@ -20,6 +20,7 @@ table is a set of fixed-size numpy arrays that numba kernels can fill and read w
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -36,7 +37,9 @@ __all__ = [
     "Plan",
     "batch_slot_kind",
     "clear_slots",
+    "grown_table",
     "make_room",
+    "write_slots",
 ]
 
 
@@ -160,6 +163,27 @@ class Plan:
     @property
     def n_steps(self) -> int:
         return int(self.steps.shape[0])
+
+
+def write_slots(ops: Operations, emit: Callable[[], int], grow: Callable[[int], None], *, solved: bool) -> None:
+    """Write the last solve's plan into the reused table ``ops`` (a numba planner's ``batch``): ``emit()``
+    returns the slots written, or minus the slots needed when the table is too small (nothing written,
+    ``make_room``): then ``grow(need)`` and write again. ``solved``: whether there is a plan to write."""
+    if not solved:
+        raise RuntimeError("batch() needs a successful solve_moves() first")
+    n = emit()
+    if n < 0:
+        grow(-n)
+        n = emit()
+    ops.n = n
+
+
+def grown_table(ops: Operations, need: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rare: ``ops`` cleared and grown to twice ``need`` slots (a plan longer than the preallocated table;
+    it allocates once, then stays), and fresh per-slot tone counts ``(y_used, x_used)`` to match it."""
+    ops.clear()
+    ops.reserve(2 * need)
+    return np.zeros(ops.capacity, dtype=np.int64), np.zeros(ops.capacity, dtype=np.int64)
 
 
 @njit(cache=True, nogil=True)

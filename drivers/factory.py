@@ -14,8 +14,9 @@ imported and (with ``probe``) opened here, and why not.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from engine.aod_limits import SegmentGuard
 from engine.config import DevicesConfig, SystemConfig
@@ -25,6 +26,13 @@ if TYPE_CHECKING:
     from engine.engine import Lab
 
 __all__ = ["HostClock", "available_devices", "open_devices"]
+
+
+class _Openable(Protocol):
+    def open(self) -> None: ...
+
+
+_Device = TypeVar("_Device", bound=_Openable)
 
 class HostClock:
     """Wall time on hardware: the host's monotonic high-resolution clock."""
@@ -74,11 +82,8 @@ def open_devices(
         if d.awg == "spectrum":
             from drivers.spectrum import SpectrumAWG
 
-            spectrum = SpectrumAWG(d.spectrum, spcm_module=spcm_module,
-                                   rf_guard=SegmentGuard(config.channel_limits(), config.waveforms.slot_samples))
-            spectrum.open()
-            opened.append(spectrum)
-            awg = spectrum
+            guard = SegmentGuard(config.channel_limits(), config.waveforms.slot_samples)
+            awg = _opened(SpectrumAWG(d.spectrum, spcm_module=spcm_module, rf_guard=guard), opened)
         else:
             assert sim_parts is not None
             awg = sim_parts.awg
@@ -91,10 +96,7 @@ def open_devices(
                 from drivers.activesilicon import ActiveSiliconFrameSource
 
                 source = ActiveSiliconFrameSource(d.activesilicon, library=phx_library)
-            andor = AndorCamera(d.andor, frame_source=source, sdk_module=andor_module, clock=clock)
-            andor.open()
-            opened.append(andor)
-            camera = andor
+            camera = _opened(AndorCamera(d.andor, frame_source=source, sdk_module=andor_module, clock=clock), opened)
         else:
             assert sim_parts is not None
             camera = sim_parts.camera
@@ -108,75 +110,96 @@ def open_devices(
     return _HardwareDeviceSet(camera=camera, awg=awg, clock=clock), None
 
 
+def _opened(device: _Device, opened: list[Any]) -> _Device:
+    """``device`` opened, and listed in ``opened`` (closed again if a later device fails to open)."""
+    device.open()
+    opened.append(device)
+    return device
+
+
 def _entry(role: str, name: str, selected: bool, available: bool, detail: str) -> dict[str, Any]:
     return {"role": role, "name": name, "selected": selected, "available": available, "detail": detail}
+
+
+def _probe_with(
+    load: Callable[[], Any], probe: bool, loaded: str, check: Callable[[Any], tuple[bool, str]]
+) -> tuple[bool, str]:
+    """``(available, detail)`` of one vendor device: its module loads (``load``; without ``probe`` that is the
+    whole check, and ``loaded`` says so), then ``check(module)`` looks at the device itself."""
+    try:
+        mod = load()
+    except DeviceError as err:
+        return False, str(err)
+    if not probe:
+        return True, loaded
+    return check(mod)
 
 
 def _probe_spectrum(d: DevicesConfig, probe: bool, spcm_module: ModuleType | None) -> tuple[bool, str]:
     from drivers.spectrum import SpectrumAWG, import_spcm
 
-    try:
-        mod = spcm_module if spcm_module is not None else import_spcm()
-    except DeviceError as err:
-        return False, str(err)
-    if not probe:
-        return True, "spcm and the Spectrum driver library load (card not opened: --no-probe)"
-    awg = SpectrumAWG(d.spectrum, spcm_module=mod)
-    try:
-        awg.open()
-    except DeviceError as err:
-        return False, str(err)
-    try:
-        i = awg.info
-        demo = " (demo card)" if i.get("demo_card") else ""
-        return True, (
-            f"{i['product']}{demo} s/n {i['serial']} at {d.spectrum.device}: {i['channels']} channels, "
-            f"{i['memory_bytes'] / 2**30:.1f} GiB, {i['max_segments']} segments, {i['max_steps']} steps"
-        )
-    finally:
-        awg.close()
+    def check(mod: ModuleType) -> tuple[bool, str]:
+        awg = SpectrumAWG(d.spectrum, spcm_module=mod)
+        try:
+            awg.open()
+        except DeviceError as err:
+            return False, str(err)
+        try:
+            i = awg.info
+            demo = " (demo card)" if i.get("demo_card") else ""
+            return True, (
+                f"{i['product']}{demo} s/n {i['serial']} at {d.spectrum.device}: {i['channels']} channels, "
+                f"{i['memory_bytes'] / 2**30:.1f} GiB, {i['max_segments']} segments, {i['max_steps']} steps"
+            )
+        finally:
+            awg.close()
+
+    return _probe_with(
+        lambda: spcm_module if spcm_module is not None else import_spcm(), probe,
+        "spcm and the Spectrum driver library load (card not opened: --no-probe)", check,
+    )  # fmt: skip
 
 
 def _probe_andor(d: DevicesConfig, probe: bool, andor_module: ModuleType | None) -> tuple[bool, str]:
     from drivers.andor import import_andor, status_name
 
-    try:
-        mod = andor_module if andor_module is not None else import_andor()
-    except DeviceError as err:
-        return False, str(err)
-    if not probe:
-        return True, "pyAndorSDK2 imports (SDK library not loaded: --no-probe)"
-    try:
-        sdk = mod.atmcd()
-        ret, n = sdk.GetAvailableCameras()  # allowed before Initialize; does not disturb a running camera
-    except Exception as err:  # noqa: BLE001 - the vendor wrapper raises what its library raises
-        return False, f"Andor camera: pyAndorSDK2 imports but the SDK library could not be used ({err})"
-    if ret != 20002:
-        return False, f"Andor camera: GetAvailableCameras failed with {status_name(ret)}"
-    if d.andor.index >= n:
-        return False, f"Andor camera: the SDK sees {n} camera(s); devices.andor.index is {d.andor.index}"
-    return True, f"the SDK sees {n} camera(s); devices.andor.index {d.andor.index} (not initialized by this check)"
+    def check(mod: ModuleType) -> tuple[bool, str]:
+        try:
+            sdk = mod.atmcd()
+            ret, n = sdk.GetAvailableCameras()  # allowed before Initialize; does not disturb a running camera
+        except Exception as err:  # noqa: BLE001 - the vendor wrapper raises what its library raises
+            return False, f"Andor camera: pyAndorSDK2 imports but the SDK library could not be used ({err})"
+        if ret != 20002:
+            return False, f"Andor camera: GetAvailableCameras failed with {status_name(ret)}"
+        if d.andor.index >= n:
+            return False, f"Andor camera: the SDK sees {n} camera(s); devices.andor.index is {d.andor.index}"
+        return True, f"the SDK sees {n} camera(s); devices.andor.index {d.andor.index} (not initialized by this check)"
+
+    return _probe_with(
+        lambda: andor_module if andor_module is not None else import_andor(), probe,
+        "pyAndorSDK2 imports (SDK library not loaded: --no-probe)", check,
+    )  # fmt: skip
 
 
 def _probe_activesilicon(d: DevicesConfig, probe: bool, phx_library: Any) -> tuple[bool, str]:
     from drivers.activesilicon import ActiveSiliconFrameSource, load_library
 
-    try:
-        lib = phx_library if phx_library is not None else load_library(d.activesilicon.library)
-    except DeviceError as err:
-        return False, str(err)
-    if not probe:
-        return True, "the PHX library loads (board not opened: --no-probe)"
-    if not d.activesilicon.config_file:
-        return True, "the PHX library loads; set devices.activesilicon.config_file to also open the board"
-    source = ActiveSiliconFrameSource(d.activesilicon, library=lib)
-    try:
-        source.open()
-    except DeviceError as err:
-        return False, str(err)
-    source.close()
-    grabber = d.activesilicon
-    return True, f"board {grabber.board} channel {grabber.channel} opens with {grabber.config_file}"
+    def check(lib: Any) -> tuple[bool, str]:
+        if not d.activesilicon.config_file:
+            return True, "the PHX library loads; set devices.activesilicon.config_file to also open the board"
+        source = ActiveSiliconFrameSource(d.activesilicon, library=lib)
+        try:
+            source.open()
+        except DeviceError as err:
+            return False, str(err)
+        source.close()
+        grabber = d.activesilicon
+        return True, f"board {grabber.board} channel {grabber.channel} opens with {grabber.config_file}"
+
+    return _probe_with(
+        lambda: phx_library if phx_library is not None else load_library(d.activesilicon.library), probe,
+        "the PHX library loads (board not opened: --no-probe)", check,
+    )  # fmt: skip
 
 
 def available_devices(

@@ -114,8 +114,8 @@ class SpectrumAWG:
         self._spcm = spcm_module
         self._card: Any = None
         self._running = False
-        self._n_channels = 0
-        self._sample_rate_hz = 0.0
+        self.n_channels = 0  # the enabled channels and the sample rate (engine.devices.SequenceAWG), set by configure
+        self.sample_rate_hz = 0.0
         self._n_segments = 0
         self._n_steps = 0
         self._seg_len: list[int] = []
@@ -205,14 +205,6 @@ class SpectrumAWG:
                 raise DeviceError(f"Spectrum AWG: closing the card failed: {err}") from None
 
     # --- protocol: properties and setup ----------------------------------------------------------------
-
-    @property
-    def n_channels(self) -> int:
-        return self._n_channels
-
-    @property
-    def sample_rate_hz(self) -> float:
-        return self._sample_rate_hz
 
     @property
     def max_segment_samples(self) -> int:
@@ -308,8 +300,8 @@ class SpectrumAWG:
             raise
         except Exception as err:  # noqa: BLE001 - spcm raises SpcmException and friends; all become DeviceError
             raise DeviceError(f"Spectrum AWG: configuring the card failed: {err}") from None
-        self._n_channels = n_channels
-        self._sample_rate_hz = float(rate)
+        self.n_channels = n_channels
+        self.sample_rate_hz = float(rate)
         self._n_segments = config.n_segments
         self._n_steps = config.n_steps
         self._max_seg = card_rules.max_segment_samples(self.info["memory_bytes"], n_channels, config.n_segments)
@@ -340,18 +332,13 @@ class SpectrumAWG:
             raise DeviceError(f"Spectrum AWG: waiting for the segment upload failed: {err}") from None
 
     def _upload(self, index: int, samples: np.ndarray, command: int) -> None:
-        if not 0 <= index < self._n_segments:
-            if not self._n_segments:
-                raise DeviceError("Spectrum AWG: write_segment before configure()")
-            raise DeviceError(f"Spectrum AWG: segment index {index} out of range 0..{self._n_segments - 1}")
-        if not isinstance(samples, np.ndarray) or samples.dtype != np.int16 or samples.ndim != 2 \
-                or samples.shape[1] != self._n_channels:
-            raise DeviceError(
-                f"Spectrum AWG: segment {index}: samples must be int16[n, {self._n_channels}], got "
-                f"{getattr(samples, 'dtype', type(samples).__name__)}{getattr(samples, 'shape', '')}"
-            )
+        if not self._n_segments:
+            raise DeviceError("Spectrum AWG: write_segment before configure()")
+        problem = card_rules.segment_samples_problem(index, samples, self._n_segments, self.n_channels)
+        if problem is not None:
+            raise DeviceError(f"Spectrum AWG: {problem}")
         n = samples.shape[0]
-        problem = card_rules.segment_length_problem(n, self._n_channels, self._max_seg)
+        problem = card_rules.segment_length_problem(n, self.n_channels, self._max_seg)
         if problem is not None:
             raise DeviceError(
                 f"Spectrum AWG: segment {index}: {problem}; the card needs a multiple of "
@@ -409,16 +396,11 @@ class SpectrumAWG:
     def write_step(self, index: int, step: StepInfo) -> None:
         """Write one step word (takes effect the next time the card enters or leaves that step)."""
         seg, nxt, loops = step.segment, step.next_step, step.loops
-        if not 0 <= index < self._n_steps:
-            if not self._n_steps:
-                raise DeviceError("Spectrum AWG: write_step before configure()")
-            raise DeviceError(f"Spectrum AWG: step index {index} out of range 0..{self._n_steps - 1}")
-        if not 0 <= seg < self._n_segments:
-            raise DeviceError(f"Spectrum AWG: step {index}: segment {seg} out of range 0..{self._n_segments - 1}")
-        if not 0 <= nxt < self._n_steps:
-            raise DeviceError(f"Spectrum AWG: step {index}: next_step {nxt} out of range 0..{self._n_steps - 1}")
-        if not 1 <= loops <= card_rules.SPCSEQ_LOOPMASK:
-            raise DeviceError(f"Spectrum AWG: step {index}: loops must be 1..{card_rules.SPCSEQ_LOOPMASK}, got {loops}")
+        if not self._n_steps:
+            raise DeviceError("Spectrum AWG: write_step before configure()")
+        problem = card_rules.step_problem(index, seg, nxt, loops, self._n_steps, self._n_segments)
+        if problem is not None:
+            raise DeviceError(f"Spectrum AWG: {problem}")
         if self._seg_len[seg] == 0:
             raise DeviceError(
                 f"Spectrum AWG: step {index} plays segment {seg}, which holds no samples yet; upload it first"
@@ -481,7 +463,7 @@ class SpectrumAWG:
         else:
             raise DeviceError(f"Spectrum AWG: unknown pulse line {line!r}; use 'camera' or 'resume'")
         card, reg, width = self._card, self._R_ASYNCIO, self.settings.pulse_width_s
-        if card is None or not self._n_channels:
+        if card is None or not self.n_channels:
             raise DeviceError("Spectrum AWG: pulse before configure(); the X lines are not set up yet")
         try:
             card.set_i(reg, self._xio | bit)

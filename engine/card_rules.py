@@ -95,6 +95,33 @@ def segment_length_problem(n_samples: int, n_channels: int, max_samples: int | N
     return None
 
 
+def segment_samples_problem(index: int, samples: object, n_segments: int, n_channels: int) -> str | None:
+    """Why ``samples`` cannot be written into segment ``index`` of a card with ``n_segments`` segments and
+    ``n_channels`` enabled channels (its index, or its array's type or shape), or ``None``. Its length is
+    ``segment_length_problem``'s."""
+    if not 0 <= index < n_segments:
+        return f"segment index {index} out of range 0..{n_segments - 1}"
+    if not isinstance(samples, np.ndarray) or samples.dtype != np.int16 or samples.ndim != 2 \
+            or samples.shape[1] != n_channels:
+        got = f"{samples.dtype} of shape {samples.shape}" if isinstance(samples, np.ndarray) else type(samples).__name__
+        return f"segment {index}: samples must be int16[n, {n_channels}], got {got}"
+    return None
+
+
+def step_problem(index: int, segment: int, next_step: int, loops: int, n_steps: int, n_segments: int) -> str | None:
+    """Why step ``index`` cannot be written with these fields on a card of ``n_steps`` steps and ``n_segments``
+    segments (an index out of range, a loop count the step word cannot hold), or ``None``."""
+    if not 0 <= index < n_steps:
+        return f"step index {index} out of range 0..{n_steps - 1}"
+    if not 0 <= segment < n_segments:
+        return f"step {index}: segment {segment} out of range 0..{n_segments - 1}"
+    if not 0 <= next_step < n_steps:
+        return f"step {index}: next_step {next_step} out of range 0..{n_steps - 1}"
+    if not 1 <= loops <= SPCSEQ_LOOPMASK:
+        return f"step {index}: loops must be 1..{SPCSEQ_LOOPMASK} (the step word's loop field), got {loops}"
+    return None
+
+
 def slot_length_problem(sample_rate_hz: float, slot_duration_s: float, n_channels: int) -> str | None:
     """Why the card cannot play segments made of waveform slots of this length, with the fix; ``None`` if it can.
 

@@ -133,6 +133,18 @@ class DevicesConfig(_Model):
     andor: AndorSettings = AndorSettings()
     activesilicon: ActiveSiliconSettings = ActiveSiliconSettings()
 
+    @property
+    def resolved_frame_source(self) -> Literal["sim", "andor", "activesilicon"]:
+        """The frame source after resolving ``auto``."""
+        if self.frame_source == "auto":
+            return "sim" if self.camera == "sim" else "andor"
+        return self.frame_source
+
+    @property
+    def simulated(self) -> bool:
+        """True when every device is simulated (the simulated lab's hooks then tell the truth)."""
+        return self.camera == "sim" and self.awg == "sim"
+
     @model_validator(mode="after")
     def _consistent_devices(self) -> DevicesConfig:
         source = self.resolved_frame_source
@@ -152,15 +164,3 @@ class DevicesConfig(_Model):
                 "(the grabber's .pcf camera file for the iXon)"
             )
         return self
-
-    @property
-    def resolved_frame_source(self) -> Literal["sim", "andor", "activesilicon"]:
-        """The frame source after resolving ``auto``."""
-        if self.frame_source == "auto":
-            return "sim" if self.camera == "sim" else "andor"
-        return self.frame_source
-
-    @property
-    def simulated(self) -> bool:
-        """True when every device is simulated (the simulated lab's hooks then tell the truth)."""
-        return self.camera == "sim" and self.awg == "sim"

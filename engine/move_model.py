@@ -127,6 +127,15 @@ class MoveState:
 
 
 @njit(cache=True, nogil=True)
+def _transfer_kept(u: np.ndarray, pos: int, p_transfer: float, draw_transfer: bool) -> tuple[bool, int]:
+    """Whether a transfer (pick-up or implant) keeps its atom, drawing the uniform ``u[pos]`` against
+    ``p_transfer`` when ``draw_transfer``, and the index of the next draw."""
+    if not draw_transfer:
+        return True, pos
+    return u[pos] < p_transfer, pos + 1
+
+
+@njit(cache=True, nogil=True)
 def tweezer_slot(
     yt: np.ndarray, xt: np.ndarray, full_fraction: float, half: int,
     static: np.ndarray, held: np.ndarray, held_mark: np.ndarray, ids: np.ndarray, atom_stats: np.ndarray,
@@ -217,10 +226,7 @@ def tweezer_slot(
                     events[EV_FIRST_DROP] = r1 * nx + c1
             elif not on1:
                 events[EV_IMPLANTED] += 1
-                ok = True
-                if draw_transfer:
-                    ok = u[pos] < p_transfer
-                    pos += 1
+                ok, pos = _transfer_kept(u, pos, p_transfer, draw_transfer)
                 if ok:
                     static[r1, c1] = True
                     if track_ids:
@@ -248,10 +254,7 @@ def tweezer_slot(
                 atom_stats[a, STAT_PICKUPS] += 1
                 if captured:
                     atom_stats[a, STAT_CAPTURES] += 1
-            ok = True
-            if draw_transfer:
-                ok = u[pos] < p_transfer
-                pos += 1
+            ok, pos = _transfer_kept(u, pos, p_transfer, draw_transfer)
             if ok:
                 held[r1, c1] = True
                 held_mark[r1, c1] = _MARK_CAPTURED if captured else _MARK_PICKED

@@ -20,13 +20,27 @@ table is a set of fixed-size numpy arrays that numba kernels can fill and read w
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
 
 import numpy as np
 from numba import njit
 
-__all__ = ["IDLE", "EXTRACT", "SHIFT", "IMPLANT", "OpKind", "Operations", "Plan", "batch_slot_kind", "clear_slots"]
+__all__ = [
+    "EXTRACT",
+    "IDLE",
+    "IMPLANT",
+    "SHIFT",
+    "OpKind",
+    "Operations",
+    "Plan",
+    "batch_slot_kind",
+    "clear_slots",
+    "grown_table",
+    "make_room",
+    "write_slots",
+]
 
 
 class OpKind(IntEnum):
@@ -156,6 +170,27 @@ class Plan:
         return int(self.steps.shape[0])
 
 
+def write_slots(ops: Operations, emit: Callable[[], int], grow: Callable[[int], None], *, solved: bool) -> None:
+    """Write the last solve's plan into the reused table ``ops`` (a numba planner's ``batch``): ``emit()``
+    returns the slots written, or minus the slots needed when the table is too small (nothing written,
+    ``make_room``): then ``grow(need)`` and write again. ``solved``: whether there is a plan to write."""
+    if not solved:
+        raise RuntimeError("batch() needs a successful solve_moves() first")
+    n = emit()
+    if n < 0:
+        grow(-n)
+        n = emit()
+    ops.n = n
+
+
+def grown_table(ops: Operations, need: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rare: ``ops`` cleared and grown to twice ``need`` slots (a plan longer than the preallocated table;
+    it allocates once, then stays), and fresh per-slot tone counts ``(y_used, x_used)`` to match it."""
+    ops.clear()
+    ops.reserve(2 * need)
+    return np.zeros(ops.capacity, dtype=np.int64), np.zeros(ops.capacity, dtype=np.int64)
+
+
 @njit(cache=True, nogil=True)
 def batch_slot_kind(t: int, n_shift: int) -> int:
     """The kind of slot ``t`` of a batch with ``n_shift`` SHIFT slots: EXTRACT first, IMPLANT last, SHIFT
@@ -165,6 +200,19 @@ def batch_slot_kind(t: int, n_shift: int) -> int:
     if t == n_shift + 1:
         return IMPLANT
     return SHIFT
+
+
+@njit(cache=True, nogil=True)
+def make_room(
+    need: int, n_prev: int, kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray,
+    x_delta: np.ndarray, y_used: np.ndarray, x_used: np.ndarray,
+) -> bool:
+    """Whether the table holds a plan of ``need`` slots; if it does, the previous plan's ``n_prev`` slots are
+    cleared (``clear_slots``), else nothing is touched (the planner grows the table and writes again)."""
+    if need > kind.shape[0]:
+        return False
+    clear_slots(n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
+    return True
 
 
 @njit(cache=True, nogil=True)

@@ -18,9 +18,11 @@ Calibration acquires fresh frames through the engine, fits a threshold or a PSF 
 keeps the result under an id without applying it; ``apply_calibration(id)`` turns it into an ordinary config
 change, refused if the configuration changed since the frames were taken.
 
-The service composes its parts from modules beside it: ``server.shot_history`` (the held shots),
-``server.calibration`` (the fits and the ``CalibrationBook``), ``server.config_input`` (strict validation of a
-client's configuration and the tone files it names) and ``server.no_engine`` (the stand-in while devices are down).
+It stays one module (about 600 lines) because what is left is one thing: the engine lock, the runner and
+the state machine above, which share every field. Its other parts live in modules beside it:
+``server.shot_history`` (the held shots), ``server.calibration`` (the fits and the ``CalibrationBook``),
+``server.config_input`` (strict validation of a client's configuration and the tone files it names) and
+``server.no_engine`` (the stand-in while devices are down).
 """
 
 from __future__ import annotations

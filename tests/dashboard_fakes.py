@@ -6,11 +6,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from engine.engine import EngineThread
 from frontend.dashboard import Dashboard
-from server.runstore import FrameKeeping, RunStore
+from server.runstore import FrameKeeping
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
+from server_fakes import fake_lab_service
 
 
 @contextmanager
@@ -19,15 +18,10 @@ def dashboard_on_fake_lab(
 ) -> Iterator[tuple[Dashboard, LabService]]:
     """A started dashboard (any free port, refreshed every 50 ms) over a service running fake shots; stored
     runs go to ``runs`` (keeping camera frames as ``frames`` says). Both are stopped on exit."""
-    service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(example_config(), keep_images=keep_images)),  # type: ignore[arg-type, return-value]
-        store=RunStore(runs, frames=frames),
-        pause_s=0.01,
-    ).start()
-    dashboard = Dashboard(service, port=0, refresh_s=0.05)
-    dashboard.start()
-    try:
-        yield dashboard, service
-    finally:
-        dashboard.stop()
-        service.close()
+    with fake_lab_service(runs, engine_kw={"keep_images": keep_images}, frames=frames) as service:
+        dashboard = Dashboard(service, port=0, refresh_s=0.05)
+        dashboard.start()
+        try:
+            yield dashboard, service
+        finally:
+            dashboard.stop()

@@ -12,20 +12,55 @@ import struct
 import threading
 import time
 import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from engine.config import SystemConfig, load_config
+from engine.engine import EngineThread
 from engine.psf import frame_shape
 from engine.records import CycleRecord, Outcome, ShotRecord
 from engine.targets import build_target
+from server.runstore import FrameKeeping, RunStore
+from server.service import LabService
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chain-1x64.yaml"
 
 
 def example_config() -> SystemConfig:
     return load_config(EXAMPLE)
+
+
+def fake_engine_host(config: SystemConfig, **engine_kw: Any) -> EngineThread:
+    """An engine thread whose engine is a ``FakeEngine`` under ``config`` (``engine_kw``: the fake's options)."""
+    return EngineThread(lambda: FakeEngine(config, **engine_kw))  # type: ignore[arg-type, return-value]  # a FakeEngine stands in for Engine
+
+
+@contextmanager
+def fake_lab_service(
+    runs: Path | None,
+    *,
+    engine_kw: dict[str, Any] | None = None,
+    frames: FrameKeeping | None = None,
+    **options: Any,
+) -> Iterator[LabService]:
+    """A started ``LabService`` over a ``FakeEngine`` on ``example_config()``, recording to ``runs`` (``None``:
+    not recorded; camera frames kept as ``frames`` says); ``options`` go to the service (``pause_s`` is 10 ms
+    unless given). Closed on exit."""
+    config = example_config()
+    service = LabService(
+        engine_thread=fake_engine_host(config, **(engine_kw or {})),
+        store=RunStore(runs, frames=frames) if runs is not None else None,
+        config=config,
+        **{"pause_s": 0.01, **options},
+    ).start()
+    try:
+        yield service
+    finally:
+        service.close()
 
 
 class _Devices:

@@ -12,11 +12,10 @@ import pytest
 
 from conftest import wait_until
 from dashboard_fakes import dashboard_on_fake_lab
-from engine.engine import EngineThread
 from frontend.dashboard import Dashboard
-from server.runstore import FrameKeeping, RunStore
+from server.runstore import FrameKeeping
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
+from server_fakes import fake_lab_service
 
 pytest.importorskip("viser")
 
@@ -109,31 +108,26 @@ def test_physicist_tabs_show_maps_assembly_and_a_recorded_shot(dash: tuple[Dashb
 
 def test_new_controls_are_read_only_without_the_token(tmp_path: Path) -> None:
     """Reset, run-file listing and the shared map/history choices obey the token like every other control."""
-    service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(example_config())),  # type: ignore[arg-type, return-value]
-        store=RunStore(tmp_path / "runs"),
-        pause_s=0.01,
-    ).start()
-    dashboard = Dashboard(service, port=0, refresh_s=0.05, token="dash-token")
-    dashboard.start()
-    try:
-        service.shot()
-        digest = service.config.digest()
-        stranger = SimpleNamespace(client_id=41)
-        dashboard._guarded(dashboard._reset_stats)(stranger)
-        assert service.trap_stats.get(digest) is not None  # not reset
-        dashboard._guarded(dashboard._list_runs)(stranger)
-        assert list(dashboard.d_run.options) == ["(none)"]  # not listed
-        dashboard.d_map.value = "loading_probability"
-        dashboard._history_or_back(stranger)
-        assert dashboard.d_map.value == "survival"  # put back
-        assert dashboard.login(7, "dash-token")
-        member = SimpleNamespace(client_id=7)
-        dashboard.d_map.value = "loading_probability"
-        dashboard._history_or_back(member)
-        assert dashboard.d_map.value == "loading_probability"
-        dashboard._guarded(dashboard._reset_stats)(member)
-        assert service.trap_stats.get(digest) is None
-    finally:
-        dashboard.stop()
-        service.close()
+    with fake_lab_service(tmp_path / "runs") as service:
+        dashboard = Dashboard(service, port=0, refresh_s=0.05, token="dash-token")
+        dashboard.start()
+        try:
+            service.shot()
+            digest = service.config.digest()
+            stranger = SimpleNamespace(client_id=41)
+            dashboard._guarded(dashboard._reset_stats)(stranger)
+            assert service.trap_stats.get(digest) is not None  # not reset
+            dashboard._guarded(dashboard._list_runs)(stranger)
+            assert list(dashboard.d_run.options) == ["(none)"]  # not listed
+            dashboard.d_map.value = "loading_probability"
+            dashboard._history_or_back(stranger)
+            assert dashboard.d_map.value == "survival"  # put back
+            assert dashboard.login(7, "dash-token")
+            member = SimpleNamespace(client_id=7)
+            dashboard.d_map.value = "loading_probability"
+            dashboard._history_or_back(member)
+            assert dashboard.d_map.value == "loading_probability"
+            dashboard._guarded(dashboard._reset_stats)(member)
+            assert service.trap_stats.get(digest) is None
+        finally:
+            dashboard.stop()

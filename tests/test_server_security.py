@@ -16,36 +16,29 @@ from starlette.websockets import WebSocketDisconnect
 from engine.config import SystemConfig
 from engine.engine import EngineThread
 from server.app import create_app
-from server.runstore import RunStore
 from server.service import LabService
-from server_fakes import FakeEngine, example_config
+from server_fakes import fake_engine_host, fake_lab_service
 
 TOKEN = "lab-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
 def fake_factory(config: SystemConfig) -> EngineThread:
-    return EngineThread(lambda: FakeEngine(config, keep_images=True))  # type: ignore[arg-type, return-value]  # a FakeEngine stands in for Engine
+    return fake_engine_host(config, keep_images=True)
 
 
 @pytest.fixture
 def lab(tmp_path: Path) -> Iterator[LabService]:
     (tmp_path / "tones").mkdir()
     (tmp_path / "shots").mkdir()
-    config = example_config()
-    service = LabService(
-        engine_thread=fake_factory(config),
-        store=RunStore(tmp_path / "runs"),
-        pause_s=0.01,
+    with fake_lab_service(
+        tmp_path / "runs",
+        engine_kw={"keep_images": True},
         engine_factory=fake_factory,
-        config=config,
         tone_dir=tmp_path / "tones",
         shot_dir=tmp_path / "shots",
-    ).start()
-    try:
+    ) as service:
         yield service
-    finally:
-        service.close()
 
 
 @pytest.fixture
@@ -290,11 +283,7 @@ def test_a_command_waits_for_a_busy_engine_only_so_long(tmp_path: Path, monkeypa
     import server.service
 
     monkeypatch.setattr(server.service, "COMMAND_WAIT_S", 0.2)
-    service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(example_config(), shot_s=1.0)),  # type: ignore[arg-type, return-value]  # a fake engine
-        pause_s=0.0,
-    ).start()
-    try:
+    with fake_lab_service(None, engine_kw={"shot_s": 1.0}, pause_s=0.0) as service:
         with TestClient(create_app(service=service)) as c:
             shot = threading.Thread(target=service.shot)
             shot.start()
@@ -307,5 +296,3 @@ def test_a_command_waits_for_a_busy_engine_only_so_long(tmp_path: Path, monkeypa
             assert r.status_code == 503 and "busy" in r.text and "one shot" in r.text
             shot.join()
             assert service.config == before
-    finally:
-        service.close()

@@ -13,13 +13,12 @@ import pytest
 from fastapi.testclient import TestClient
 
 from drivers.sim.lab import LOSS_CAUSES
-from engine.engine import EngineThread
 from engine.psf import frame_shape
 from engine.records import CycleRecord, Outcome, ShotRecord
 from server.app import create_app
 from server.runstore import FrameKeeping, RunStore
 from server.service import LabService
-from server_fakes import FakeEngine, example_config, png_pixels
+from server_fakes import example_config, fake_lab_service, png_pixels
 
 TOKEN = "stats-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -27,16 +26,8 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 @pytest.fixture
 def lab(tmp_path: Path) -> Iterator[LabService]:
-    config = example_config()
-    service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(config)),  # type: ignore[arg-type, return-value]  # a FakeEngine stands in for Engine
-        store=RunStore(tmp_path / "runs"),
-        pause_s=0.01,
-    ).start()
-    try:
+    with fake_lab_service(tmp_path / "runs") as service:
         yield service
-    finally:
-        service.close()
 
 
 @pytest.fixture
@@ -169,12 +160,8 @@ def test_frames_of_every_nth_shot_are_kept_and_served(tmp_path: Path) -> None:
     """With every 2nd shot's frames kept, run-file shots 0 and 2 keep every cycle's frame (the engine kept
     them) and shot 1 none; each is served as a lossless PNG, a missing one is a 404 that says why."""
     config = example_config()
-    service = LabService(
-        engine_thread=EngineThread(lambda: FakeEngine(config, keep_images=True)),  # type: ignore[arg-type, return-value]  # a FakeEngine stands in for Engine
-        store=RunStore(tmp_path / "runs", frames=FrameKeeping(every_nth_shot=2)),
-        pause_s=0.01,
-    ).start()
-    try:
+    frames = FrameKeeping(every_nth_shot=2)
+    with fake_lab_service(tmp_path / "runs", engine_kw={"keep_images": True}, frames=frames) as service:
         records = [service.shot() for _ in range(3)]
         service.run_store.flush()  # type: ignore[union-attr]  # built with one
         with TestClient(create_app(service=service, token=TOKEN)) as client:
@@ -201,8 +188,6 @@ def test_frames_of_every_nth_shot_are_kept_and_served(tmp_path: Path) -> None:
             assert f["frame_index"][:].tolist() == (
                 [[0, c] for c in range(len(records[0].cycles))] + [[2, c] for c in range(len(records[2].cycles))]
             )
-    finally:
-        service.close()
 
 
 def test_frames_are_bounded_per_file_and_default_to_the_final_one(tmp_path: Path) -> None:

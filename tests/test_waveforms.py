@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -19,23 +20,13 @@ from engine.config import ConfigError, load_config
 from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations
 from engine.solvers.validate import InvalidPlan, replay
 from engine.waveforms import (
-    CHAIN_KINDS,
-    FADE_IN,
-    FADE_OUT,
-    FULL_SCALE,
-    INNER_UP,
-    MOVE_DOWN,
-    MOVE_UP,
-    RAMP_DOWN,
-    RAMP_UP,
-    SLM_KINDS,
-    STATIC,
     WaveformBank,
     axis_tones,
     continuous_phases,
     phase_track,
     prefix_formula_bytes,
     shape_curve,
+    shapes,
     table_formula_bytes,
 )
 from engine.waveforms.kernels import _RUN0
@@ -141,10 +132,10 @@ def _tweezer_track(cfg, k: int, pad: int = 1) -> tuple[np.ndarray, np.ndarray]:
     b = WaveformBank(cfg)
     n = b.slot_samples
     if cfg.array.trap_source == "aod":  # a chain mover row is move - static: add the static tone back
-        move = b.synthesize("x", INNER_UP, k, exact=True) + b.synthesize("x", STATIC, k, exact=True)
+        move = b.synthesize("x", shapes.INNER_UP, k, exact=True) + b.synthesize("x", shapes.STATIC, k, exact=True)
     else:
-        move = b.synthesize("x", MOVE_UP, k, exact=True)
-    before, after = b.synthesize("x", STATIC, k, exact=True), b.synthesize("x", STATIC, k + 1, exact=True)
+        move = b.synthesize("x", shapes.MOVE_UP, k, exact=True)
+    before, after = b.synthesize("x", shapes.STATIC, k, exact=True), b.synthesize("x", shapes.STATIC, k + 1, exact=True)
     # ``pad`` static slots either side. The analytic signal wraps around, and where the two ends' phases do not
     # meet (a midpoint tone of interstitial routing is about pi off its neighbour) that bends the estimate near
     # the ends, by the inverse square of the distance to them (1 % of a half site at two slots, 0.09 % at eight)
@@ -243,10 +234,10 @@ def test_static_phase_is_exact_and_periodic() -> None:
     cfg = chain_config(16)
     b = bank("chain16", cfg)
     n = b.slot_samples
-    row = b.synthesize("x", STATIC, 5, exact=True)
+    row = b.synthesize("x", shapes.STATIC, 5, exact=True)
     t = axis_tones(cfg, "x")
     tt = np.arange(n) / cfg.waveforms.sample_rate_hz
-    a = 0.014 * FULL_SCALE / np.sinc(t.frequency_hz[5] / 624e6)  # compensated for the DAC's hold (default)
+    a = 0.014 * shapes.FULL_SCALE / np.sinc(t.frequency_hz[5] / 624e6)  # compensated for the DAC's hold (default)
     expect = a * np.sin(t.phase_rad[5] + 2 * np.pi * t.frequency_hz[5] * tt)
     assert np.abs(row - expect).max() < 1e-6
     # the next sample after the slot is the slot's first sample again
@@ -256,8 +247,9 @@ def test_static_phase_is_exact_and_periodic() -> None:
 
 # (kind, start site offset, start amplitude, end site offset, end amplitude)
 KIND_ENDS = {
-    STATIC: (0, 1, 0, 1), MOVE_UP: (0, 1, 1, 1), MOVE_DOWN: (0, 1, -1, 1), RAMP_UP: (0, 0, 0, 1),
-    RAMP_DOWN: (0, 1, 0, 0), FADE_OUT: (0, 1, 0, 0), FADE_IN: (0, 0, 0, 1),
+    shapes.STATIC: (0, 1, 0, 1), shapes.MOVE_UP: (0, 1, 1, 1), shapes.MOVE_DOWN: (0, 1, -1, 1),
+    shapes.RAMP_UP: (0, 0, 0, 1), shapes.RAMP_DOWN: (0, 1, 0, 0), shapes.FADE_OUT: (0, 1, 0, 0),
+    shapes.FADE_IN: (0, 0, 0, 1),
 }
 
 
@@ -271,7 +263,7 @@ def test_every_kind_joins_the_static_tones_at_both_ends(shape: str) -> None:
     n = b.slot_samples
     t = axis_tones(cfg, "x")
     w = 2 * np.pi / cfg.waveforms.sample_rate_hz
-    site_a = 0.014 * FULL_SCALE / np.sinc(t.frequency_hz / cfg.waveforms.sample_rate_hz)  # DAC-compensated
+    site_a = 0.014 * shapes.FULL_SCALE / np.sinc(t.frequency_hz / cfg.waveforms.sample_rate_hz)  # DAC-compensated
     a = float(site_a.max())
     for kind, (s0, a0, s1, a1) in KIND_ENDS.items():
         for k in (1, 7, 14):
@@ -352,7 +344,7 @@ def test_table_rows_equal_direct_synthesis_and_reference(which: str) -> None:
     cfg = chain_config(16) if which == "chain" else grid_config(8, 6)
     b = bank(which, cfg)
     ref = ReferenceSynth(cfg)
-    kinds = CHAIN_KINDS if which == "chain" else SLM_KINDS
+    kinds = shapes.CHAIN_KINDS if which == "chain" else shapes.SLM_KINDS
     n_rows = 0
     for a, axis in enumerate(b.axes):
         n_sites = cfg.array.nx if axis == "x" else cfg.array.ny
@@ -366,7 +358,7 @@ def test_table_rows_equal_direct_synthesis_and_reference(which: str) -> None:
                 assert np.array_equal(row, direct)  # identical: same kernel, same quantization
                 exact = b.synthesize(axis, kind, k, exact=True)
                 r = ref.tone(axis, kind, k)
-                assert np.abs(exact - r).max() < 1e-6 * FULL_SCALE * 0.02
+                assert np.abs(exact - r).max() < 1e-6 * shapes.FULL_SCALE * 0.02
                 assert np.abs(row * q - r).max() <= 0.51 * q  # int16 table units of q counts
     # the stated formula: 2 bytes x slot_samples x sum over axes (sites x kinds)
     n = cfg.waveforms.slot_samples
@@ -381,22 +373,23 @@ def test_example_table_sizes() -> None:
     assert table_formula_bytes(grid) == 2 * 3136 * (32 + 64) * 5 == 3_010_560
 
 
+def config_and_random_ops(which: str, rng, *, n_traps: int, n_slots: int):
+    """``(config(**sections), ops)``: a chain of ``n_traps`` with ``n_slots`` random slots (``which`` "chain"),
+    or random batches on the 8x6 grid ("grid"); ``config`` builds the configuration with any section changed."""
+    if which == "chain":
+        return partial(chain_config, n_traps), random_chain_ops(n_traps, n_slots, rng)[0]
+    return partial(grid_config, 8, 6), grid_batch_ops(rng)
+
+
 @pytest.mark.parametrize("which", ["chain", "grid"])
 def test_small_table_budget_renders_identically(which: str) -> None:
-    rng = np.random.default_rng(7)
-    if which == "chain":
-        cfg = chain_config(24)
-        ops, _ = random_chain_ops(24, 8, rng)
-        over = lambda b: chain_config(24, waveforms={"table_max_bytes": b})  # noqa: E731
-    else:
-        cfg = grid_config(8, 6)
-        ops = grid_batch_ops(rng)
-        over = lambda b: grid_config(8, 6, waveforms={"table_max_bytes": b})  # noqa: E731
+    config, ops = config_and_random_ops(which, np.random.default_rng(7), n_traps=24, n_slots=8)
+    cfg = config()
     full = WaveformBank(cfg)
     want = full.render_slots(ops)
     n = cfg.waveforms.slot_samples
     for budget in (0, 2 * n * 8 * 3):  # nothing, and a few blocks of rows
-        small = WaveformBank(over(budget))
+        small = WaveformBank(config(waveforms={"table_max_bytes": budget}))
         assert small.table_bytes <= budget
         assert np.array_equal(small.render_slots(ops), want)
         for i in range(ops.n):
@@ -406,15 +399,9 @@ def test_small_table_budget_renders_identically(which: str) -> None:
 
 @pytest.mark.parametrize("which", ["chain", "grid"])
 def test_render_matches_the_plain_numpy_reference(which: str) -> None:
-    rng = np.random.default_rng(11)
-    if which == "chain":
-        cfg = chain_config(16)
-        ops, _ = random_chain_ops(16, 6, rng)
-        ops.append(IDLE, [], [])
-    else:
-        cfg = grid_config(8, 6)
-        ops = grid_batch_ops(rng)
-        ops.append(IDLE, [], [])
+    config, ops = config_and_random_ops(which, np.random.default_rng(11), n_traps=16, n_slots=6)
+    cfg = config()
+    ops.append(IDLE, [], [])
     b = bank(which, cfg)
     ref = ReferenceSynth(cfg)
     s = b.render_slots(ops)

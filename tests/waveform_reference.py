@@ -6,26 +6,7 @@ import numpy as np
 
 from engine.config import SystemConfig
 from engine.operations import EXTRACT, IDLE, IMPLANT, SHIFT, Operations
-from engine.waveforms import axes_of, axis_tones, phase_track, shape_curve
-from engine.waveforms.shapes import (
-    FADE_IN,
-    FADE_IN_START,
-    FADE_OUT,
-    FADE_OUT_END,
-    FULL_SCALE,
-    HEAD_DOWN,
-    HEAD_UP,
-    INNER_UP,
-    ISO_DOWN,
-    ISO_UP,
-    MOVE_DOWN,
-    MOVE_UP,
-    RAMP_DOWN,
-    RAMP_UP,
-    STATIC,
-    TAIL_DOWN,
-    TAIL_UP,
-)
+from engine.waveforms import axes_of, axis_tones, phase_track, shape_curve, shapes
 
 
 class ReferenceSynth:
@@ -56,44 +37,44 @@ class ReferenceSynth:
     def tone(self, axis: str, kind: int, k: int) -> np.ndarray:
         """float64[N] counts of one tone (any kind, the chain's composite mover rows included)."""
         t = self.tones[axis]
-        a = t.amplitude * FULL_SCALE
+        a = t.amplitude * shapes.FULL_SCALE
         if self.config.waveforms.compensate_dac_sinc:  # the DAC's zero-order hold delivers a * sinc(f / f_s)
             a = a / np.sinc(t.frequency_hz / self.config.waveforms.sample_rate_hz)
         static = a[k] * np.sin(self.phase(axis, k)[:-1])
-        if kind >= INNER_UP:
-            up = kind in (INNER_UP, HEAD_UP, TAIL_UP, ISO_UP)
+        if kind >= shapes.INNER_UP:
+            up = kind in (shapes.INNER_UP, shapes.HEAD_UP, shapes.TAIL_UP, shapes.ISO_UP)
             d = 1 if up else -1
             if not 0 <= k + d < a.size:
                 return np.zeros(self.n)
-            v = self.tone(axis, MOVE_UP if up else MOVE_DOWN, k) - static
-            if kind in (HEAD_UP, HEAD_DOWN, ISO_UP, ISO_DOWN):
-                v += self.tone(axis, FADE_OUT, k + d) - self.tone(axis, STATIC, k + d)
-            if kind in (TAIL_UP, TAIL_DOWN, ISO_UP, ISO_DOWN):
-                v += self.tone(axis, FADE_IN, k)
+            v = self.tone(axis, shapes.MOVE_UP if up else shapes.MOVE_DOWN, k) - static
+            if kind in (shapes.HEAD_UP, shapes.HEAD_DOWN, shapes.ISO_UP, shapes.ISO_DOWN):
+                v += self.tone(axis, shapes.FADE_OUT, k + d) - self.tone(axis, shapes.STATIC, k + d)
+            if kind in (shapes.TAIL_UP, shapes.TAIL_DOWN, shapes.ISO_UP, shapes.ISO_DOWN):
+                v += self.tone(axis, shapes.FADE_IN, k)
             return v
-        if kind in (MOVE_UP, MOVE_DOWN):
-            d = 1 if kind == MOVE_UP else -1
+        if kind in (shapes.MOVE_UP, shapes.MOVE_DOWN):
+            d = 1 if kind == shapes.MOVE_UP else -1
             if not 0 <= k + d < a.size:
                 return np.zeros(self.n)
             amp = a[k] + (a[k + d] - a[k]) * self._s(self.u)
             return amp * np.sin(self.phase(axis, k, d)[:-1])
-        if kind == STATIC:
+        if kind == shapes.STATIC:
             return static
-        if kind == RAMP_UP:
+        if kind == shapes.RAMP_UP:
             return self._s(self.u) * static
-        if kind == RAMP_DOWN:
+        if kind == shapes.RAMP_DOWN:
             return (1 - self._s(self.u)) * static
-        if kind == FADE_OUT:
-            return (1 - self._s(self.u / FADE_OUT_END)) * static
-        if kind == FADE_IN:
-            return self._s((self.u - FADE_IN_START) / (1 - FADE_IN_START)) * static
+        if kind == shapes.FADE_OUT:
+            return (1 - self._s(self.u / shapes.FADE_OUT_END)) * static
+        if kind == shapes.FADE_IN:
+            return self._s((self.u - shapes.FADE_IN_START) / (1 - shapes.FADE_IN_START)) * static
         raise ValueError(f"unknown kind {kind}")
 
     def hold(self) -> np.ndarray:
         out = np.zeros((self.n, 1 if self.chain else 2))
         if self.chain:
             for k in range(self.config.array.nx):
-                out[:, 0] += self.tone("x", STATIC, k)
+                out[:, 0] += self.tone("x", shapes.STATIC, k)
         return out
 
     def slot(self, ops: Operations, i: int) -> np.ndarray:
@@ -107,24 +88,25 @@ class ReferenceSynth:
             deltas = {int(k): int(d) for k, d in zip(xs, dxs, strict=True) if d != 0}
             dst = {k + d for k, d in deltas.items()}
             for k, d in deltas.items():
-                out[:, 0] += self.tone("x", MOVE_UP if d > 0 else MOVE_DOWN, k)
+                out[:, 0] += self.tone("x", shapes.MOVE_UP if d > 0 else shapes.MOVE_DOWN, k)
             for k in range(self.config.array.nx):
                 if k in dst and k not in deltas:
-                    out[:, 0] += self.tone("x", FADE_OUT, k)
+                    out[:, 0] += self.tone("x", shapes.FADE_OUT, k)
                 elif k in deltas and k not in dst:
-                    out[:, 0] += self.tone("x", FADE_IN, k)
+                    out[:, 0] += self.tone("x", shapes.FADE_IN, k)
                 elif k not in deltas:
-                    out[:, 0] += self.tone("x", STATIC, k)
+                    out[:, 0] += self.tone("x", shapes.STATIC, k)
             return out
         out = np.zeros((self.n, 2))
         for ch, (sites, deltas, axis) in enumerate(((xs, dxs, "x"), (ys, dys, "y"))):
             for k, d in zip(sites.tolist(), deltas.tolist(), strict=True):
                 if kind == EXTRACT:
-                    out[:, ch] += self.tone(axis, RAMP_UP, k)
+                    out[:, ch] += self.tone(axis, shapes.RAMP_UP, k)
                 elif kind == IMPLANT:
-                    out[:, ch] += self.tone(axis, RAMP_DOWN, k)
+                    out[:, ch] += self.tone(axis, shapes.RAMP_DOWN, k)
                 elif kind == SHIFT:
-                    out[:, ch] += self.tone(axis, STATIC if d == 0 else (MOVE_UP if d > 0 else MOVE_DOWN), k)
+                    kind_d = shapes.STATIC if d == 0 else (shapes.MOVE_UP if d > 0 else shapes.MOVE_DOWN)
+                    out[:, ch] += self.tone(axis, kind_d, k)
         return out
 
     def failsafe(self, ops: Operations, i: int) -> np.ndarray:
@@ -136,5 +118,5 @@ class ReferenceSynth:
         if kind in (EXTRACT, SHIFT):
             for ch, (sites, deltas, axis) in enumerate(((xs, dxs, "x"), (ys, dys, "y"))):
                 for k, d in zip(sites.tolist(), deltas.tolist(), strict=True):
-                    out[:, ch] += self.tone(axis, STATIC, k + (d if kind == SHIFT else 0))
+                    out[:, ch] += self.tone(axis, shapes.STATIC, k + (d if kind == SHIFT else 0))
         return out

@@ -108,14 +108,6 @@ class SimAWG:
 
     # --- protocol: properties and setup ----------------------------------------------------------------
 
-    @property
-    def n_channels(self) -> int:
-        return self._n_channels
-
-    @property
-    def sample_rate_hz(self) -> float:
-        return self._sample_rate_hz
-
     def configure(self, config: AWGConfig, *, n_channels: int, sample_rate_hz: float) -> None:
         """Reset the card: clear sequence memory and stop playback."""
         if n_channels not in card_rules.CHANNEL_COUNTS:
@@ -132,8 +124,8 @@ class SimAWG:
             limits = self.system.channel_limits(self.full_scale)[:n_channels]
             self._rf_guard = SegmentGuard(limits, decoder.slot_samples)
             self.awg_config = config
-            self._n_channels = int(n_channels)
-            self._sample_rate_hz = float(sample_rate_hz)
+            self.n_channels = int(n_channels)
+            self.sample_rate_hz = float(sample_rate_hz)
             self.decoder = decoder
             self._segments: list[_Segment | None] = [None] * config.n_segments
             self._steps: list[StepInfo | None] = [None] * config.n_steps
@@ -210,16 +202,10 @@ class SimAWG:
         self._pending.insert(pos, (t_effective_s, index, value))
 
     def _check_segment(self, index: int, samples: np.ndarray) -> None:
-        if not 0 <= index < len(self._segments):
-            raise DeviceError(f"sim AWG: segment index {index} out of range 0..{len(self._segments) - 1}")
-        if not isinstance(samples, np.ndarray) or samples.dtype != np.int16:
-            dtype = getattr(samples, "dtype", type(samples).__name__)
-            raise DeviceError(f"sim AWG: segment {index}: samples must be int16, got {dtype}")
-        if samples.ndim != 2 or samples.shape[1] != self._n_channels or samples.shape[0] == 0:
-            raise DeviceError(
-                f"sim AWG: segment {index}: samples must be int16[n > 0, {self._n_channels}], got shape {samples.shape}"
-            )
-        problem = card_rules.segment_length_problem(samples.shape[0], self._n_channels)
+        problem = card_rules.segment_samples_problem(index, samples, len(self._segments), self.n_channels)
+        if problem is not None:
+            raise DeviceError(f"sim AWG: {problem}")
+        problem = card_rules.segment_length_problem(samples.shape[0], self.n_channels)
         if problem is not None:  # the card's rules (engine/card_rules.py): refuse what the card refuses
             raise DeviceError(f"sim AWG: segment {index}: {problem}; the Spectrum card would refuse it")
         problem = self._rf_guard.problem(samples)
@@ -239,18 +225,11 @@ class SimAWG:
     def write_step(self, index: int, step: StepInfo) -> None:
         with self._card():
             self._sync()
-            n_steps, n_seg = len(self._steps), len(self._segments)
-            if not 0 <= index < n_steps:
-                raise DeviceError(f"sim AWG: step index {index} out of range 0..{n_steps - 1}")
-            if not 0 <= step.segment < n_seg:
-                raise DeviceError(f"sim AWG: step {index}: segment {step.segment} out of range 0..{n_seg - 1}")
-            if not 0 <= step.next_step < n_steps:
-                raise DeviceError(f"sim AWG: step {index}: next_step {step.next_step} out of range 0..{n_steps - 1}")
-            if not 1 <= step.loops <= card_rules.SPCSEQ_LOOPMASK:
-                raise DeviceError(
-                    f"sim AWG: step {index}: loops must be 1..{card_rules.SPCSEQ_LOOPMASK} (the step word's loop "
-                    f"field), got {step.loops}"
-                )
+            problem = card_rules.step_problem(
+                index, step.segment, step.next_step, step.loops, len(self._steps), len(self._segments)
+            )
+            if problem is not None:
+                raise DeviceError(f"sim AWG: {problem}")
             cost = self.awg_config.step_write_s + self.step_write_delay_s
             t_eff = self.clock.now_s() + cost
             self.clock.advance(cost)
@@ -445,7 +424,7 @@ class SimAWG:
         self._slot_done = dec.n_slots if (dec.stationary and not first) else 0
 
     def _pass_duration(self) -> float:
-        return self._pass_seg.data.shape[0] / self._sample_rate_hz
+        return self._pass_seg.data.shape[0] / self.sample_rate_hz
 
     def _apply_slots(self, t_until: float) -> None:
         dec = self._decoded(self._pass_seg)

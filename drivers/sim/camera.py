@@ -166,6 +166,39 @@ def _expected_electrons(
 
 
 @numba.njit(cache=True, nogil=True)
+def _poisson(rng: np.random.Generator, lam: float) -> int:
+    """A Poisson(``lam``) draw: below a mean of 10 the CDF inverted with one uniform (fast for dim pixels)."""
+    if lam >= 10.0:
+        return rng.poisson(lam)
+    u = rng.random()
+    p = math.exp(-lam)
+    cdf = p
+    n = 0
+    while u > cdf and n < 100:
+        n += 1
+        p *= lam / n
+        cdf += p
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _read_out(
+    rng: np.random.Generator, n: int, em_gain: float, read_noise_e: float, electrons_per_count: float,
+    bias_counts: float,
+) -> int:
+    """ADC counts of a pixel holding ``n`` electrons: EM gain (Gamma(n, em_gain)), read noise, bias, and
+    the 16-bit ADC's range."""
+    if n == 0:
+        e = 0.0
+    elif n == 1:
+        e = rng.standard_exponential() * em_gain
+    else:
+        e = rng.gamma(float(n), em_gain)
+    counts = round((e + read_noise_e * rng.standard_normal()) / electrons_per_count + bias_counts)
+    return 0 if counts < 0 else (ADC_MAX_COUNTS if counts > ADC_MAX_COUNTS else counts)
+
+
+@numba.njit(cache=True, nogil=True)
 def _emccd_counts(
     rng: np.random.Generator,
     mean_e: np.ndarray,
@@ -179,26 +212,8 @@ def _emccd_counts(
     lam_flat = mean_e.reshape(mean_e.size)
     out = out_counts.reshape(out_counts.size)
     for i in range(out.size):
-        lam = lam_flat[i]
-        if lam < 10.0:  # inversion of the Poisson CDF: one uniform, fast for the dim background pixels
-            u = rng.random()
-            p = math.exp(-lam)
-            cdf = p
-            n = 0
-            while u > cdf and n < 100:
-                n += 1
-                p *= lam / n
-                cdf += p
-        else:
-            n = rng.poisson(lam)
-        if n == 0:
-            e = 0.0
-        elif n == 1:
-            e = rng.standard_exponential() * em_gain
-        else:
-            e = rng.gamma(float(n), em_gain)
-        counts = round((e + read_noise_e * rng.standard_normal()) / electrons_per_count + bias_counts)
-        out[i] = 0 if counts < 0 else (ADC_MAX_COUNTS if counts > ADC_MAX_COUNTS else counts)
+        n = _poisson(rng, lam_flat[i])
+        out[i] = _read_out(rng, n, em_gain, read_noise_e, electrons_per_count, bias_counts)
 
 
 @dataclass(frozen=True)
@@ -284,6 +299,18 @@ def background_table(
 
 
 @numba.njit(cache=True, nogil=True)
+def _stack(
+    j: int, scaled: np.ndarray, small: np.ndarray, ns: int, large: np.ndarray, nl: int
+) -> tuple[int, int]:
+    """Push entry ``j`` onto the alias method's small (``scaled[j] < 1``) or large stack; the new heights."""
+    if scaled[j] < 1.0:
+        small[ns] = j
+        return ns + 1, nl
+    large[nl] = j
+    return ns, nl + 1
+
+
+@numba.njit(cache=True, nogil=True)
 def _alias_table(p: np.ndarray, prob: np.ndarray, alias: np.ndarray) -> None:
     """Vose's alias method: entry ``j`` keeps itself with probability ``prob[j]``, else becomes ``alias[j]``."""
     k = p.size
@@ -293,12 +320,7 @@ def _alias_table(p: np.ndarray, prob: np.ndarray, alias: np.ndarray) -> None:
     ns = nl = 0
     for j in range(k):
         alias[j] = j
-        if scaled[j] < 1.0:
-            small[ns] = j
-            ns += 1
-        else:
-            large[nl] = j
-            nl += 1
+        ns, nl = _stack(j, scaled, small, ns, large, nl)
     while ns > 0 and nl > 0:
         ns -= 1
         s = small[ns]
@@ -307,12 +329,7 @@ def _alias_table(p: np.ndarray, prob: np.ndarray, alias: np.ndarray) -> None:
         prob[s] = scaled[s]
         alias[s] = big
         scaled[big] = (scaled[big] + scaled[s]) - 1.0
-        if scaled[big] < 1.0:
-            small[ns] = big
-            ns += 1
-        else:
-            large[nl] = big
-            nl += 1
+        ns, nl = _stack(big, scaled, small, ns, large, nl)
     for j in range(nl):
         prob[large[j]] = 1.0
     for j in range(ns):  # rounding leftovers: probability ~1
@@ -352,18 +369,7 @@ def _emccd_counts_split(
     small_bg = background_e < 10.0
     for i in range(out.size):
         d = lam_flat[i] - background_e  # atom light (>= 0: the atoms' stamps are added onto the background)
-        n_atom = 0
-        if d > 0.0:
-            if d < 10.0:
-                u = rng.random()
-                p = math.exp(-d)
-                cdf = p
-                while u > cdf and n_atom < 100:
-                    n_atom += 1
-                    p *= d / n_atom
-                    cdf += p
-            else:
-                n_atom = rng.poisson(d)
+        n_atom = _poisson(rng, d) if d > 0.0 else 0
         if n_atom == 0:
             x = rng.random() * n_entries
             j = int(x)
@@ -384,12 +390,7 @@ def _emccd_counts_split(
                     n = rng.poisson(background_e)
         else:
             n = n_atom + (_invert(rng, bg_cdf) if small_bg else rng.poisson(background_e))
-        if n == 1:
-            e = rng.standard_exponential() * em_gain
-        else:
-            e = rng.gamma(float(n), em_gain)
-        counts = round((e + read_noise_e * rng.standard_normal()) / electrons_per_count + bias_counts)
-        out[i] = 0 if counts < 0 else (ADC_MAX_COUNTS if counts > ADC_MAX_COUNTS else counts)
+        out[i] = _read_out(rng, n, em_gain, read_noise_e, electrons_per_count, bias_counts)
 
 
 class SimCamera:

@@ -650,14 +650,8 @@ def _find_movers(a: np.ndarray, n_sites: int, mover_frac: float, mover: np.ndarr
 
 @njit(cache=True, nogil=True)
 def _classify_slot(
-    a: np.ndarray,
-    n_sites: int,
-    mover_frac: float,
-    report_frac: float,
-    out: np.ndarray,
-    mover: np.ndarray,
-    origin: np.ndarray,
-    dest: np.ndarray,
+    a: np.ndarray, n_sites: int, mover_frac: float, report_frac: float, out: np.ndarray, mover: np.ndarray,
+    origin: np.ndarray, dest: np.ndarray,
 ) -> int:
     """Tracks of one slot from its amplitudes ``a[window, q]`` and ``mover`` (from ``_find_movers``) into
     ``out``; returns how many. Reads ``a[2, 1 .. 2n - 1]``, the site points of windows 0 and 4, and the

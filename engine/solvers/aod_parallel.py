@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.operations import Operations, Plan
+from engine.operations import Operations, Plan, grown_table, write_slots
 from engine.solvers.aod_parallel_kernels import OK, OVERFLOW, STUCK, UNSOLVABLE, emit_batches, find_rect, plan_rect
 from engine.solvers.base import PlannerError, UnsolvableError
 
@@ -201,18 +201,11 @@ class AODParallelPlanner:
 
     def batch(self) -> Plan:
         """The waveform slots of the last solve (a view of the planner's table, reused next time)."""
-        if not self._solved:
-            raise RuntimeError("batch() needs a successful solve_moves() first")
-        ops = self.operations
-        n = self._emit()
-        if n < 0:
-            ops.clear()
-            ops.reserve(2 * (-n))
-            self._y_used = np.zeros(ops.capacity, dtype=np.int64)
-            self._x_used = np.zeros(ops.capacity, dtype=np.int64)
-            n = self._emit()
-        ops.n = n
-        return Plan(steps=self._steps[: self._n_steps], operations=ops, algorithm="aod-parallel")
+        write_slots(self.operations, self._emit, self._grow, solved=self._solved)
+        return Plan(steps=self._steps[: self._n_steps], operations=self.operations, algorithm="aod-parallel")
+
+    def _grow(self, need: int) -> None:
+        self._y_used, self._x_used = grown_table(self.operations, need)
 
     def _emit(self) -> int:
         ops = self.operations

@@ -24,6 +24,17 @@ _N, _K, _T, _B, _WTOP, _WBOT = 0, 1, 2, 3, 8, 9
 
 
 @njit(cache=True, nogil=True)
+def _atom_rows(g: np.ndarray, c: int, nr: int, pos: np.ndarray) -> int:
+    """The rows of column ``c``'s atoms, ascending, into ``pos``; returns how many."""
+    n = 0
+    for r in range(nr):
+        if g[c, r]:
+            pos[n] = r
+            n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
 def _column_batch(
     g: np.ndarray, c: int, nr: int, r0: int, h_rows: int, k: int, pos: np.ndarray, transposed: bool, nx_real: int,
     bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray, brm: np.ndarray, nrr: int,
@@ -32,11 +43,7 @@ def _column_batch(
     """Compress column ``c`` in one batch: window atom ``k + i`` goes straight to row ``r0 + i`` (an order-
     preserving matching, so tones never meet and no path crosses a surplus atom, which stays). Each atom is
     picked up once. Returns the new counts, nb = -1 on overflow; records nothing if nothing moves."""
-    n = 0
-    for r in range(nr):
-        if g[c, r]:
-            pos[n] = r
-            n += 1
+    _atom_rows(g, c, nr, pos)  # the window is atoms k .. k + h_rows - 1 of these
     n_move = 0
     dmax = 0
     n_dist = 0
@@ -226,6 +233,18 @@ def _col_bits(
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _rescore(o_u: np.uint64, n_u: np.uint64, w: int, score: np.ndarray, old_weight: int, weight: int) -> None:
+    """Word ``w``'s entries go from set ``o_u`` at ``old_weight`` to set ``n_u`` at ``weight`` in ``score``:
+    every entry moves where the weight changed, else only those that joined or left the set."""
+    if weight != old_weight:
+        _add_bits(o_u, w, score, -old_weight)
+        _add_bits(n_u, w, score, weight)
+    else:
+        _add_bits(o_u & ~n_u, w, score, -weight)
+        _add_bits(n_u & ~o_u, w, score, weight)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _col_apply(
     c: int, w: int, n_vt: np.uint64, n_ut: np.uint64, n_vb: np.uint64, n_ub: np.uint64, wtop: int, wbot: int,
     old_t: int, old_b: int, cm: np.ndarray, vt: np.ndarray, ut: np.ndarray, vb: np.ndarray, ub: np.ndarray,
@@ -238,18 +257,8 @@ def _col_apply(
     o_ub = cm[c, 6 + w]
     _flip_bits(n_ut ^ o_ut, w, ut, c)
     _flip_bits(n_ub ^ o_ub, w, ub, c)
-    if wtop != old_t:
-        _add_bits(o_ut, w, sct, -old_t)
-        _add_bits(n_ut, w, sct, wtop)
-    else:
-        _add_bits(o_ut & ~n_ut, w, sct, -wtop)
-        _add_bits(n_ut & ~o_ut, w, sct, wtop)
-    if wbot != old_b:
-        _add_bits(o_ub, w, scb, -old_b)
-        _add_bits(n_ub, w, scb, wbot)
-    else:
-        _add_bits(o_ub & ~n_ub, w, scb, -wbot)
-        _add_bits(n_ub & ~o_ub, w, scb, wbot)
+    _rescore(o_ut, n_ut, w, sct, old_t, wtop)
+    _rescore(o_ub, n_ub, w, scb, old_b, wbot)
     cm[c, w] = n_vt
     cm[c, 2 + w] = n_ut
     cm[c, 4 + w] = n_vb
@@ -364,6 +373,23 @@ def _fill_batch(
 
 
 @njit(cache=True, nogil=True)
+def _compress_alone(
+    g: np.ndarray, ob: np.ndarray, c: int, nr: int, r0: int, h_rows: int, k: int, pos: np.ndarray,
+    transposed: bool, nx_real: int, bmeta: np.ndarray, nb: int, brow: np.ndarray, brs: np.ndarray,
+    brm: np.ndarray, nrr: int, bcol: np.ndarray, bcs: np.ndarray, bcm: np.ndarray, ncr: int, steps: np.ndarray,
+    n_steps: int,
+) -> tuple[int, int, int, int]:
+    """Compress column ``c`` on its own (``_column_batch``), its occupancy read back from the bit rows ``ob``
+    into ``g`` first: the fallback when the greedy stops helping."""
+    for r in range(nr):
+        g[c, r] = (ob[c, r >> 6] >> np.uint64(r & 63)) & np.uint64(1)
+    return _column_batch(
+        g, c, nr, r0, h_rows, k, pos, transposed, nx_real,
+        bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
 def _load_column(g: np.ndarray, c: int, nr: int, ob: np.ndarray, prow: np.ndarray, st: np.ndarray) -> None:
     """Occupancy bits, sorted atom rows and atom count of column ``c`` from ``g``."""
     ob[c, 0] = 0
@@ -438,10 +464,8 @@ def _fill_phase(
         if budget < 0:
             for c in range(c0, c1):
                 if st[c, _T] > 0 or st[c, _B] > 0:
-                    for r in range(nr):
-                        g[c, r] = (ob[c, r >> 6] >> np.uint64(r & 63)) & np.uint64(1)
-                    nb, nrr, ncr, n_steps = _column_batch(
-                        g, c, nr, r0, h_rows, st[c, _K], pos, transposed, nx_real,
+                    nb, nrr, ncr, n_steps = _compress_alone(
+                        g, ob, c, nr, r0, h_rows, st[c, _K], pos, transposed, nx_real,
                         bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
                     )  # fmt: skip
                     if nb < 0:
@@ -458,10 +482,8 @@ def _fill_phase(
             if worst < 0:
                 return OK, nb, nrr, ncr, n_steps
             # no Fill helps anyone (not seen in practice): compress the neediest column on its own
-            for r in range(nr):
-                g[worst, r] = (ob[worst, r >> 6] >> np.uint64(r & 63)) & np.uint64(1)
-            nb, nrr, ncr, n_steps = _column_batch(
-                g, worst, nr, r0, h_rows, st[worst, _K], pos, transposed, nx_real,
+            nb, nrr, ncr, n_steps = _compress_alone(
+                g, ob, worst, nr, r0, h_rows, st[worst, _K], pos, transposed, nx_real,
                 bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
             )  # fmt: skip
             if nb < 0:
@@ -522,11 +544,7 @@ def _best_window(g: np.ndarray, c: int, nr: int, r0: int, r1: int, pos: np.ndarr
     """First atom (sorted index) of column ``c``'s best window of ``r1 - r0`` consecutive atoms for a one-batch
     compression: the fewest shift slots (the largest displacement, max(T, B)), then the fewest steps."""
     h_rows = r1 - r0
-    n = 0
-    for r in range(nr):
-        if g[c, r]:
-            pos[n] = r
-            n += 1
+    n = _atom_rows(g, c, nr, pos)
     best = 0
     best_key = -1
     for k in range(n - h_rows + 1):

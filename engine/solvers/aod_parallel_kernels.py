@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from engine.operations import SHIFT, batch_slot_kind, clear_slots
+from engine.operations import SHIFT, batch_slot_kind, make_room
 from engine.solvers.aod_parallel_balance import _balance
 from engine.solvers.aod_parallel_fill import _fill_phase
 from engine.solvers.aod_parallel_records import OK, OVERFLOW, STUCK, UNSOLVABLE
@@ -126,9 +126,8 @@ def emit_batches(
     need = 0
     for b in range(nb):
         need += bmeta[b, 4] + 2
-    if need > kind.shape[0]:
+    if not make_room(need, n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used):
         return -need
-    clear_slots(n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
     n = 0
     for b in range(nb):
         a0, a1, b0, b1, n_shift = bmeta[b, 0], bmeta[b, 1], bmeta[b, 2], bmeta[b, 3], bmeta[b, 4]

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from engine.operations import SHIFT, batch_slot_kind, clear_slots
+from engine.operations import SHIFT, batch_slot_kind, make_room
 
 __all__ = ["batch_hops", "count_batched_slots"]
 
@@ -248,9 +248,8 @@ def emit_hop_batches(
     """Write the batches as slots (after clearing the previous plan's ``n_prev``) and the one-site steps
     slot by slot. Returns (slots, steps), or (-needed slots, 0) if the table is too small."""
     need = count_batched_slots(hop_ptr, batch_ptr, n_batches, batch_hop)
-    if need > kind.shape[0]:
+    if not make_room(need, n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used):
         return -need, 0
-    clear_slots(n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
     n = 0
     n_steps = 0
     for b in range(n_batches):

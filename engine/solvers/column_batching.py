@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from engine.operations import SHIFT, batch_slot_kind, clear_slots
+from engine.operations import SHIFT, batch_slot_kind, make_room
 from engine.solvers.redrec_solve import HORIZONTAL
 
 __all__ = ["batch_segments", "count_slots"]
@@ -136,9 +136,8 @@ def batch_segments(
     (``n_prev`` slots). Returns the number of slots, or minus the number needed if the table is too small
     (then nothing is written)."""
     need = count_slots(seg, n_seg, mv, wide)
-    if need > kind.shape[0]:
+    if not make_room(need, n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used):
         return -need
-    clear_slots(n_prev, kind, y_site, y_delta, x_site, x_delta, y_used, x_used)
     n = 0
     for s in range(n_seg):
         k, a, b, m0, m1 = seg[s, 0], seg[s, 1], seg[s, 2], seg[s, 3], seg[s, 4]

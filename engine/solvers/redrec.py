@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.operations import Operations, Plan
+from engine.operations import Operations, Plan, grown_table, write_slots
 from engine.solvers.base import UnsolvableError
 from engine.solvers.column_batching import batch_segments
 from engine.solvers.redrec_solve import UNSOLVABLE, band_rows, solve_band
@@ -119,15 +119,8 @@ class RedRecPlanner:
 
     def batch(self) -> Plan:
         """Batch the last solve into waveform slots (a view of the planner's table, reused next time)."""
-        if not self._solved:
-            raise RuntimeError("batch() needs a successful solve_moves() first")
-        ops = self.operations
-        n = self._batch()
-        if n < 0:
-            self._grow(-n)
-            n = self._batch()
-        ops.n = n
-        return Plan(steps=self._steps[: self._n_steps], operations=ops, algorithm=self.batching)
+        write_slots(self.operations, self._batch, self._grow, solved=self._solved)
+        return Plan(steps=self._steps[: self._n_steps], operations=self.operations, algorithm=self.batching)
 
     def _batch(self) -> int:
         ops = self.operations
@@ -137,9 +130,4 @@ class RedRecPlanner:
         )  # fmt: skip
 
     def _grow(self, need: int) -> None:
-        """Rare: a plan longer than the preallocated table (allocates once, then stays)."""
-        ops = self.operations
-        ops.clear()
-        ops.reserve(2 * need)
-        self._y_used = np.zeros(ops.capacity, dtype=np.int64)
-        self._x_used = np.zeros(ops.capacity, dtype=np.int64)
+        self._y_used, self._x_used = grown_table(self.operations, need)

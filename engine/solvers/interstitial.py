@@ -15,8 +15,9 @@ Two planners, both writing ``Operations`` on the grid of positions (``half = 2``
   spare atom is in the hole's column or row). Spare atoms in one column going to holes in one column move
   together on one x tone and a y tone each (one row and one row likewise), so the product set is exactly
   their tweezers, all loaded: no empty tweezer anywhere. Groups run one after the other. It plans between two
-  images, so the whole plan is numba kernels over preallocated arrays (``interstitial_pairs``,
-  ``group_pairs``, ``route_groups``); ``_groups`` and ``_route_group`` are their plain-Python references.
+  images, so the whole plan is numba kernels over preallocated arrays (``repair_kernels.free_atoms_and_holes``,
+  ``interstitial_pairs``, ``group_pairs``, ``route_groups``); ``_groups`` and ``_route_group`` are their
+  plain-Python references.
 - ``LatticeOnPositions``: any lattice planner (a strategy's bulk planner) with its plan written on the grid of
   positions (``engine.routing.lattice_to_positions``: every one-site shift as two half-site shifts).
 """
@@ -29,7 +30,7 @@ from numba import njit
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations, Plan
 from engine.routing import lattice_to_positions, n_positions
 from engine.solvers.base import Planner, UnsolvableError
-from engine.solvers.repair_kernels import assign
+from engine.solvers.repair_kernels import assign, free_atoms_and_holes
 
 __all__ = ["InterstitialRepairPlanner", "LatticeOnPositions"]
 
@@ -116,7 +117,7 @@ class InterstitialRepairPlanner:
     def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
         """Assign spare atoms to holes (fewest sites travelled) and write each route; returns the half-site steps."""
         occ = np.asarray(occupancy, dtype=np.bool_)
-        n_spare, n_holes = spare_and_holes(occ, np.asarray(target, dtype=np.bool_), self._spare, self._holes)
+        n_spare, n_holes = free_atoms_and_holes(occ, np.asarray(target, dtype=np.bool_), self._spare, self._holes)
         if n_spare < n_holes:
             raise UnsolvableError(f"{n_holes} holes in the target but only {n_spare} spare atoms")
         self.operations.clear()
@@ -211,26 +212,6 @@ class InterstitialRepairPlanner:
             self._steps = np.concatenate([self._steps, np.zeros_like(self._steps)])
         self._steps[self._n_steps] = (src, dst)
         self._n_steps += 1
-
-
-@njit(cache=True, nogil=True)
-def spare_and_holes(occupancy: np.ndarray, target: np.ndarray, spare: np.ndarray, holes: np.ndarray) -> tuple[int, int]:
-    """The spare atoms (occupied outside the target) and the holes (empty in the target), row by row as
-    ``np.argwhere`` lists them, into ``spare`` and ``holes`` (room for every trap); returns their counts."""
-    ny, nx = occupancy.shape
-    n_spare = 0
-    n_holes = 0
-    for r in range(ny):
-        for c in range(nx):
-            if occupancy[r, c] and not target[r, c]:
-                spare[n_spare, 0] = r
-                spare[n_spare, 1] = c
-                n_spare += 1
-            elif target[r, c] and not occupancy[r, c]:
-                holes[n_holes, 0] = r
-                holes[n_holes, 1] = c
-                n_holes += 1
-    return n_spare, n_holes
 
 
 @njit(cache=True, nogil=True)

@@ -126,11 +126,10 @@ class InterstitialRepairPlanner:
             if n_holes > self._cost.shape[0] or n_spare > self._cost.shape[1]:
                 self._alloc_assignment(holes=max(n_holes, 2 * self._cost.shape[0]),
                                        spare=max(n_spare, 2 * self._cost.shape[1]))  # fmt: skip
-            if not interstitial_pairs(
+            interstitial_pairs(
                 self._spare, n_spare, self._holes, n_holes, self._cost, self._lsa_f, self._lsa_i, self._col4row,
                 self._in_sr, self._in_sc, self._pairs,
-            ):  # fmt: skip
-                raise AssertionError("no assignment of spare atoms to holes: Manhattan costs are always finite")
+            )  # fmt: skip
             if self.reference:
                 for shared, group in _groups(self._pairs[:n_holes].copy(), (self.py, self.px)):
                     self._route_group(shared, group)
@@ -218,23 +217,21 @@ class InterstitialRepairPlanner:
 def interstitial_pairs(
     spare: np.ndarray, n_spare: int, holes: np.ndarray, n_holes: int, cost: np.ndarray, lsa_f: np.ndarray,
     lsa_i: np.ndarray, col4row: np.ndarray, in_sr: np.ndarray, in_sc: np.ndarray, pairs: np.ndarray,
-) -> bool:  # fmt: skip
+) -> None:  # fmt: skip
     """The fewest sites travelled in all: ``pairs[h] = (r0, c0, r1, c1)``, the spare atom at ``(r0, c0)`` for
     hole ``h`` at ``(r1, c1)``, by ``repair_kernels.assign`` over the Manhattan distances (every objective's
-    plan: two transfers per moved atom whatever the pair). ``False`` if no assignment exists."""
+    plan: two transfers per moved atom whatever the pair). ``n_spare >= n_holes``: with finite costs an
+    assignment always exists, so ``assign``'s flag is always true."""
     for h in range(n_holes):
         for f in range(n_spare):
             cost[h, f] = abs(spare[f, 0] - holes[h, 0]) + abs(spare[f, 1] - holes[h, 1])
-    if not assign(cost, n_holes, n_spare, lsa_f[0], lsa_f[1], lsa_f[2], lsa_i[0], lsa_i[1], col4row, lsa_i[2],
-                  in_sr, in_sc):  # fmt: skip
-        return False
+    assign(cost, n_holes, n_spare, lsa_f[0], lsa_f[1], lsa_f[2], lsa_i[0], lsa_i[1], col4row, lsa_i[2], in_sr, in_sc)
     for h in range(n_holes):
         f = col4row[h]
         pairs[h, 0] = spare[f, 0]
         pairs[h, 1] = spare[f, 1]
         pairs[h, 2] = holes[h, 0]
         pairs[h, 3] = holes[h, 1]
-    return True
 
 
 @njit(cache=True, nogil=True)

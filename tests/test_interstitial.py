@@ -15,7 +15,7 @@ from engine.config import SystemConfig, load_config
 from engine.engine import Engine
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations, Plan
 from engine.solvers import Solver
-from engine.solvers.interstitial import InterstitialRepairPlanner
+from engine.solvers.interstitial import InterstitialRepairPlanner, _groups, group_pairs
 from engine.solvers.validate import InvalidPlan, validate
 from engine.waveforms import WaveformBank
 
@@ -206,3 +206,50 @@ def test_a_lossless_closed_loop_shot_fills_the_target_and_leaves_the_other_atoms
         assert first.pickups == first.moves.shape[0]
     counters = lab.world.counters
     assert counters.captured == 0 and counters.lost == 0
+
+
+def _band_repairs(rng: np.random.Generator, ny: int, nx: int, holes: int) -> tuple[np.ndarray, np.ndarray]:
+    """A full band of target columns with ``holes`` holes, the rest loaded at 0.6 (a repair cycle)."""
+    target = np.zeros((ny, nx), dtype=bool)
+    target[:, nx // 4 : 3 * nx // 4] = True
+    occ = target.copy()
+    occ[~target] = rng.random(int((~target).sum())) < 0.6
+    occ.flat[rng.choice(np.flatnonzero(target), size=holes, replace=False)] = False
+    return occ, target
+
+
+def test_the_assignment_is_scipys_and_the_kernels_plan_what_python_plans_on_band_repairs() -> None:
+    """The repair kernels' assignment gives the pairs scipy's Hungarian solver gave (the planner's assignment
+    before it moved into numba), and ``group_pairs`` + ``route_groups`` write the plan ``_groups`` +
+    ``_route_group`` write, within the slot and step counts ``group_pairs`` reserves for."""
+    from scipy.optimize import linear_sum_assignment
+
+    rng = np.random.default_rng(13)
+    ny, nx = 32, 64
+    kernel, reference = InterstitialRepairPlanner(nx, ny), InterstitialRepairPlanner(nx, ny, reference=True)
+    for trial in range(40):
+        occ, target = _band_repairs(rng, ny, nx, int(rng.integers(1, 65)) if trial else 0)
+        if trial % 10 == 9:  # a first cycle: ~410 holes
+            occ = rng.random((ny, nx)) < 0.6
+        kernel.solve_moves(occ, target)
+        holes, spare = np.argwhere(target & ~occ), np.argwhere(occ & ~target)
+        cost = np.abs(spare[:, None, :] - holes[None, :, :]).sum(axis=2)
+        _, spare_of = linear_sum_assignment(cost.T)
+        assert np.array_equal(kernel._pairs[: holes.shape[0]], np.concatenate([spare[spare_of], holes], axis=1))
+        n_groups, n_slots, n_steps = group_pairs(
+            kernel._pairs, holes.shape[0], kernel.py, kernel.px, kernel._grouped, kernel._group_ptr,
+            kernel._group_shared,
+        )  # fmt: skip
+        reference.solve_moves(occ, target)
+        plans = []
+        for planner in (kernel, reference):
+            plan = planner.batch()
+            ops = plan.operations
+            plans.append(
+                [plan.steps] + [a[: ops.n] for a in (ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta)]
+            )
+        for from_kernel, from_python in zip(*plans, strict=True):
+            assert np.array_equal(from_kernel, from_python)
+        assert n_groups == len(_groups(kernel._pairs[: holes.shape[0]].copy(), (kernel.py, kernel.px)))
+        assert kernel.batch().n_slots <= n_slots and kernel.batch().n_steps <= n_steps
+        validate(kernel.batch(), occ, target, trap_source="slm")

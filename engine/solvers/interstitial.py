@@ -8,12 +8,16 @@ Two planners, both writing ``Operations`` on the grid of positions (``half = 2``
   (towards the hole's row); along that channel to the column channel beside the hole's column (on the side
   facing the spare atom); along the column channel to the hole's row; half a site along x onto the hole;
   implant. Every position between the two half steps is odd on one axis at least, so the loaded tweezer ends
-  no slot over a trap. The assignment is the minimum total Manhattan distance (scipy's Hungarian solver): with
+  no slot over a trap. The assignment is the minimum total Manhattan distance (the repair planner's
+  shortest-augmenting-path kernel, ``repair_kernels.assign``, scipy's algorithm and tie-breaking): with
   two transfers per moved atom whatever the pair, fewer sites travelled is also fewer expected losses, so
   every objective gives this plan. A route of ``d`` sites takes ``2 d`` half-site steps (2 more when the
   spare atom is in the hole's column or row). Spare atoms in one column going to holes in one column move
   together on one x tone and a y tone each (one row and one row likewise), so the product set is exactly
-  their tweezers, all loaded: no empty tweezer anywhere. Groups run one after the other.
+  their tweezers, all loaded: no empty tweezer anywhere. Groups run one after the other. It plans between two
+  images, so the whole plan is numba kernels over preallocated arrays (``repair_kernels.free_atoms_and_holes``,
+  ``interstitial_pairs``, ``group_pairs``, ``route_groups``); ``_groups`` and ``_route_group`` are their
+  plain-Python references.
 - ``LatticeOnPositions``: any lattice planner (a strategy's bulk planner) with its plan written on the grid of
   positions (``engine.routing.lattice_to_positions``: every one-site shift as two half-site shifts).
 """
@@ -26,6 +30,7 @@ from numba import njit
 from engine.operations import EXTRACT, IMPLANT, SHIFT, Operations, Plan
 from engine.routing import lattice_to_positions, n_positions
 from engine.solvers.base import Planner, UnsolvableError
+from engine.solvers.repair_kernels import assign, free_atoms_and_holes
 
 __all__ = ["InterstitialRepairPlanner", "LatticeOnPositions"]
 
@@ -77,8 +82,8 @@ class InterstitialRepairPlanner:
     """Fills the holes of any target mask from the spare atoms, each moved once along the channels."""
 
     def __init__(self, nx: int, ny: int, *, reference: bool = False) -> None:
-        """``reference``: write the routes with the plain-Python ``_route_group`` (for tests) instead of the
-        ``route_group`` kernel."""
+        """``reference``: group and write the routes in plain Python (``_groups``, ``_route_group``: for tests)
+        instead of the ``group_pairs`` and ``route_groups`` kernels."""
         if min(nx, ny) < 2:
             raise ValueError(f"interstitial routing needs channels on both axes: at least 2 x 2 traps, got {ny} x {nx}")
         self.nx, self.ny = nx, ny
@@ -88,6 +93,22 @@ class InterstitialRepairPlanner:
         self._n_steps = 0
         self._plan = Plan(steps=self._steps[:0], operations=self.operations, algorithm="repair")
         self.reference = reference
+        self._spare = np.zeros((nx * ny, 2), dtype=np.int64)
+        self._holes = np.zeros((nx * ny, 2), dtype=np.int64)
+        self._pairs = np.zeros((nx * ny, 4), dtype=np.int64)
+        self._grouped = np.zeros((nx * ny, 4), dtype=np.int64)
+        self._group_ptr = np.zeros(nx * ny + 1, dtype=np.int64)
+        self._group_shared = np.zeros(nx * ny, dtype=np.int64)
+        self._alloc_assignment(holes=64, spare=128)
+
+    def _alloc_assignment(self, *, holes: int, spare: int) -> None:
+        """The assignment's cost matrix and scratch for up to ``holes`` x ``spare`` (grown on demand, doubled)."""
+        self._cost = np.zeros((holes, spare), dtype=np.float64)
+        self._lsa_f = np.zeros((3, spare), dtype=np.float64)
+        self._lsa_i = np.zeros((4, spare), dtype=np.int64)
+        self._col4row = np.zeros(holes, dtype=np.int64)
+        self._in_sr = np.zeros(holes, dtype=np.bool_)
+        self._in_sc = np.zeros(spare, dtype=np.bool_)
 
     def check_target(self, target: np.ndarray) -> None:
         if target.shape != (self.ny, self.nx):
@@ -95,50 +116,44 @@ class InterstitialRepairPlanner:
 
     def solve_moves(self, occupancy: np.ndarray, target: np.ndarray) -> int:
         """Assign spare atoms to holes (fewest sites travelled) and write each route; returns the half-site steps."""
-        occ = np.asarray(occupancy, dtype=bool)
-        holes = np.argwhere(target & ~occ)
-        spare = np.argwhere(occ & ~target)
-        if spare.shape[0] < holes.shape[0]:
-            raise UnsolvableError(f"{holes.shape[0]} holes in the target but only {spare.shape[0]} spare atoms")
+        occ = np.asarray(occupancy, dtype=np.bool_)
+        n_spare, n_holes = free_atoms_and_holes(occ, np.asarray(target, dtype=np.bool_), self._spare, self._holes)
+        if n_spare < n_holes:
+            raise UnsolvableError(f"{n_holes} holes in the target but only {n_spare} spare atoms")
         self.operations.clear()
         self._n_steps = 0
-        if holes.shape[0]:
-            from scipy.optimize import linear_sum_assignment  # deferred: scipy loads with this planner only
-
-            cost = np.abs(spare[:, None, :] - holes[None, :, :]).sum(axis=2)
-            chosen, spare_of = linear_sum_assignment(cost.T)  # rows: holes
-            pairs = np.concatenate([spare[spare_of], holes[chosen]], axis=1)  # (r0, c0, r1, c1) per hole
-            for shared, group in _groups(pairs, (self.py, self.px)):
-                if self.reference:
+        if n_holes:
+            if n_holes > self._cost.shape[0] or n_spare > self._cost.shape[1]:
+                self._alloc_assignment(holes=max(n_holes, 2 * self._cost.shape[0]),
+                                       spare=max(n_spare, 2 * self._cost.shape[1]))  # fmt: skip
+            interstitial_pairs(
+                self._spare, n_spare, self._holes, n_holes, self._cost, self._lsa_f, self._lsa_i, self._col4row,
+                self._in_sr, self._in_sc, self._pairs,
+            )  # fmt: skip
+            if self.reference:
+                for shared, group in _groups(self._pairs[:n_holes].copy(), (self.py, self.px)):
                     self._route_group(shared, group)
-                else:
-                    self._route_group_kernel(shared, group)
+            else:
+                self._route_kernels(n_holes)
         self._plan.steps = self._steps[: self._n_steps]
         return self._n_steps
 
     def batch(self) -> Plan:
         return self._plan
 
-    def _route_group_kernel(self, shared: int, group: np.ndarray) -> None:
-        """``_route_group`` by the ``route_group`` kernel, after growing the buffers to the group's size."""
-        own = 1 - shared
-        n_own = self.px if shared == 0 else self.py
-        a = 2 * group[:, own].astype(np.int64)
-        a1 = 2 * group[:, 2 + own].astype(np.int64)
-        side = _sides(a, a1, n_own)
-        travel = np.abs(a1 + side - a)
-        shared_travel = abs(2 * int(group[0, 2 + shared]) - 2 * int(group[0, shared])) + 2
+    def _route_kernels(self, n_holes: int) -> None:
+        """``_groups`` and ``_route_group`` by the ``group_pairs`` and ``route_groups`` kernels, the buffers grown
+        to the plan's size in between."""
+        n_groups, n_slots, n_steps = group_pairs(
+            self._pairs, n_holes, self.py, self.px, self._grouped, self._group_ptr, self._group_shared
+        )
         ops = self.operations
-        ops.reserve(ops.n + int(travel.max()) + shared_travel + 3)
-        need = self._n_steps + int(travel.sum()) + a.size * (shared_travel + 1)
-        if need > self._steps.shape[0]:
-            grown = np.zeros((2 * need, 2), dtype=np.int32)
-            grown[: self._n_steps] = self._steps[: self._n_steps]
-            self._steps = grown
-        ops.n, self._n_steps = route_group(
-            shared, 2 * int(group[0, shared]), 2 * int(group[0, 2 + shared]), a, side, a1 + side,
-            self.py if shared == 0 else self.px, self.px,
-            ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, ops.n, self._steps, self._n_steps,
+        ops.reserve(n_slots)
+        if n_steps > self._steps.shape[0]:
+            self._steps = np.zeros((2 * n_steps, 2), dtype=np.int32)
+        ops.n, self._n_steps = route_groups(
+            self._grouped, self._group_ptr, self._group_shared, n_groups, self.py, self.px,
+            ops.kind, ops.y_site, ops.y_delta, ops.x_site, ops.x_delta, self._steps,
         )  # fmt: skip
 
     def _route_group(self, shared: int, group: np.ndarray) -> None:
@@ -196,6 +211,143 @@ class InterstitialRepairPlanner:
             self._steps = np.concatenate([self._steps, np.zeros_like(self._steps)])
         self._steps[self._n_steps] = (src, dst)
         self._n_steps += 1
+
+
+@njit(cache=True, nogil=True)
+def interstitial_pairs(
+    spare: np.ndarray, n_spare: int, holes: np.ndarray, n_holes: int, cost: np.ndarray, lsa_f: np.ndarray,
+    lsa_i: np.ndarray, col4row: np.ndarray, in_sr: np.ndarray, in_sc: np.ndarray, pairs: np.ndarray,
+) -> None:  # fmt: skip
+    """The fewest sites travelled in all: ``pairs[h] = (r0, c0, r1, c1)``, the spare atom at ``(r0, c0)`` for
+    hole ``h`` at ``(r1, c1)``, by ``repair_kernels.assign`` over the Manhattan distances (every objective's
+    plan: two transfers per moved atom whatever the pair). ``n_spare >= n_holes``: with finite costs an
+    assignment always exists, so ``assign``'s flag is always true."""
+    for h in range(n_holes):
+        for f in range(n_spare):
+            cost[h, f] = abs(spare[f, 0] - holes[h, 0]) + abs(spare[f, 1] - holes[h, 1])
+    assign(cost, n_holes, n_spare, lsa_f[0], lsa_f[1], lsa_f[2], lsa_i[0], lsa_i[1], col4row, lsa_i[2], in_sr, in_sc)
+    for h in range(n_holes):
+        f = col4row[h]
+        pairs[h, 0] = spare[f, 0]
+        pairs[h, 1] = spare[f, 1]
+        pairs[h, 2] = holes[h, 0]
+        pairs[h, 3] = holes[h, 1]
+
+
+@njit(cache=True, nogil=True)
+def _side(a: int, a1: int, n: int) -> int:
+    """``_sides`` for one tone."""
+    side = -1 if a < a1 else 1
+    if a == a1 and a1 == n - 1:
+        side = -1
+    if a1 + side < 0 or a1 + side >= n:
+        side = -side
+    return side
+
+
+@njit(cache=True, nogil=True)
+def group_pairs(
+    pairs: np.ndarray, n_pairs: int, py: int, px: int, grouped: np.ndarray, group_ptr: np.ndarray,
+    group_shared: np.ndarray,
+) -> tuple[int, int, int]:  # fmt: skip
+    """``_groups`` as a kernel: group ``g`` is ``grouped[group_ptr[g]:group_ptr[g + 1]]`` moving along the
+    shared axis ``group_shared[g]``, in ``_groups``' order. Returns (groups, slots, steps) of the routes.
+
+    Column groups (same source and hole column, two atoms at least) by (source column, hole column), then row
+    groups of the rest by (source row, hole row); within a group the atoms by their other coordinate, the holes'
+    other coordinates sorted and handed out in order, cut where two tones' channels come within a site."""
+    size = max(py, px) + 1  # every coordinate is below it: one integer key sorts by (line, line, other)
+    keys = np.empty(n_pairs, dtype=np.int64)
+    rest = pairs[:n_pairs].copy()
+    n_rest = n_pairs
+    leftover = np.empty_like(rest)
+    n_groups = 0
+    n_out = 0
+    n_slots = 0
+    n_steps = 0
+    group_ptr[0] = 0
+    for shared in (1, 0):
+        own = 1 - shared
+        n_own = py if shared == 1 else px
+        for i in range(n_rest):
+            keys[i] = (rest[i, shared] * size + rest[i, 2 + shared]) * size + rest[i, own]
+        order = np.argsort(keys[:n_rest])
+        n_left = 0
+        start = 0
+        while start < n_rest:
+            first = order[start]
+            end = start + 1
+            while end < n_rest and keys[order[end]] // size == keys[first] // size:
+                end += 1
+            if end - start == 1 and shared == 1:
+                leftover[n_left] = rest[first]
+                n_left += 1
+                start = end
+                continue
+            ends = np.empty(end - start, dtype=np.int64)
+            for k in range(start, end):
+                ends[k - start] = rest[order[k], 2 + own]
+            ends.sort()
+            b0 = 2 * rest[first, shared]
+            b1 = 2 * rest[first, 2 + shared]
+            shared_travel = abs(b1 - b0) + 2
+            prev_channel = -(1 << 30)
+            max_travel = 0
+            for k in range(start, end):
+                a = 2 * rest[order[k], own]
+                a1 = 2 * ends[k - start]
+                channel = a1 + _side(a, a1, n_own)
+                if k > start and channel - prev_channel < 2:  # cut: a new group from here
+                    n_slots += max_travel + shared_travel + 3
+                    n_groups += 1
+                    group_ptr[n_groups] = n_out
+                    group_shared[n_groups - 1] = shared
+                    max_travel = 0
+                prev_channel = channel
+                max_travel = max(max_travel, abs(channel - a))
+                n_steps += abs(channel - a) + shared_travel + 1
+                grouped[n_out] = rest[order[k]]
+                grouped[n_out, 2 + own] = ends[k - start]
+                n_out += 1
+            n_slots += max_travel + shared_travel + 3
+            n_groups += 1
+            group_ptr[n_groups] = n_out
+            group_shared[n_groups - 1] = shared
+            start = end
+        rest, leftover = leftover, rest
+        n_rest = n_left
+    return n_groups, n_slots, n_steps
+
+
+@njit(cache=True, nogil=True)
+def route_groups(
+    grouped: np.ndarray, group_ptr: np.ndarray, group_shared: np.ndarray, n_groups: int, py: int, px: int,
+    kind: np.ndarray, y_site: np.ndarray, y_delta: np.ndarray, x_site: np.ndarray, x_delta: np.ndarray,
+    steps: np.ndarray,
+) -> tuple[int, int]:  # fmt: skip
+    """Every group of ``group_pairs`` by ``route_group``, one after the other from slot 0 (the buffers large
+    enough, the rows cleared); returns (slots, steps)."""
+    n = 0
+    n_steps = 0
+    for g in range(n_groups):
+        shared = group_shared[g]
+        own = 1 - shared
+        n_own = py if shared == 1 else px
+        k = group_ptr[g + 1] - group_ptr[g]
+        a0 = np.empty(k, dtype=np.int64)
+        side = np.empty(k, dtype=np.int64)
+        channel = np.empty(k, dtype=np.int64)
+        for t in range(k):
+            row = group_ptr[g] + t
+            a0[t] = 2 * grouped[row, own]
+            side[t] = _side(a0[t], 2 * grouped[row, 2 + own], n_own)
+            channel[t] = 2 * grouped[row, 2 + own] + side[t]
+        first = group_ptr[g]
+        n, n_steps = route_group(
+            shared, 2 * grouped[first, shared], 2 * grouped[first, 2 + shared], a0, side, channel,
+            py if shared == 0 else px, px, kind, y_site, y_delta, x_site, x_delta, n, steps, n_steps,
+        )  # fmt: skip
+    return n, n_steps
 
 
 @njit(cache=True, nogil=True)

@@ -15,6 +15,8 @@ work over preallocated arrays, in the same order, so the plans are the same:
 - ``merge_aligned``: straight single-hop groups that cover the same columns (rows) join an earlier such group
   when nothing in between touches their traps (``RepairPlanner._merge_aligned``).
 
+``free_atoms_and_holes`` and ``assign`` serve the interstitial repair planner too (``interstitial.py``).
+
 The output is the batching kernels' input: ``hop_ptr``, ``cells`` (row, col) and ``group_ptr``.
 """
 
@@ -23,10 +25,40 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["OBJECTIVE_CODES", "assign", "merge_aligned", "pair_costs", "plan_repair", "route_pairs"]
+__all__ = [
+    "OBJECTIVE_CODES",
+    "assign",
+    "free_atoms_and_holes",
+    "merge_aligned",
+    "pair_costs",
+    "plan_repair",
+    "route_pairs",
+]
 
 #: ``RepairPlanner.objective`` -> the kernels' code
 OBJECTIVE_CODES = {"slots": 0, "transfers": 1, "survival": 2}
+
+
+@njit(cache=True, nogil=True)
+def free_atoms_and_holes(
+    occupancy: np.ndarray, target: np.ndarray, free: np.ndarray, holes: np.ndarray
+) -> tuple[int, int]:
+    """The free atoms (occupied outside the target) and the holes (empty in the target) as ``(row, col)``,
+    row by row as ``np.argwhere`` lists them, into ``free`` and ``holes``; returns their counts."""
+    ny, nx = occupancy.shape
+    n_free = 0
+    n_holes = 0
+    for r in range(ny):
+        for c in range(nx):
+            if occupancy[r, c] and not target[r, c]:
+                free[n_free, 0] = r
+                free[n_free, 1] = c
+                n_free += 1
+            elif target[r, c] and not occupancy[r, c]:
+                holes[n_holes, 0] = r
+                holes[n_holes, 1] = c
+                n_holes += 1
+    return n_free, n_holes
 
 
 @njit(cache=True, nogil=True)
@@ -333,21 +365,8 @@ def plan_repair(
     """The whole repair plan up to batching: (hops, merged groups, steps), or (-1, free atoms, holes) when
     there are fewer free atoms than holes. Every array is preallocated by ``RepairPlanner`` (``cost`` and the
     scratch arrays at least ``holes x free atoms``); ``occ`` ends as the occupancy after the plan."""
-    ny, nx = occupancy.shape
-    n_free = 0
-    n_holes = 0
-    for r in range(ny):
-        for c in range(nx):
-            o = occupancy[r, c]
-            occ[r, c] = o
-            if o and not target[r, c]:
-                free[n_free, 0] = r
-                free[n_free, 1] = c
-                n_free += 1
-            elif target[r, c] and not o:
-                holes[n_holes, 0] = r
-                holes[n_holes, 1] = c
-                n_holes += 1
+    occ[:, :] = occupancy
+    n_free, n_holes = free_atoms_and_holes(occupancy, target, free, holes)
     if n_free < n_holes:
         return -1, n_free, n_holes
     if n_holes == 0:

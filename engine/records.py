@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
+from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -68,25 +69,25 @@ def atom_paths(steps: np.ndarray, *, nx: int, half: int = 1, max_points: int = P
     ``steps`` as for ``atom_moves`` (positions of ``half`` per site on an array of ``nx`` traps). The size is
     bounded: routes are kept whole, atom after atom, up to ``max_points`` rows; the atoms after that keep only
     their straight move. Run after the plan has played (a Python walk over its steps, as ``atom_moves``)."""
-    px, scale = n_positions(nx, half), 2 // half
     routes = sorted((r for r in _routes(steps) if r[0] != r[-1]), key=lambda r: r[0])
-    out: list[np.ndarray] = []
-    kept = 0
-    for route in routes:
-        y, x = np.divmod(np.asarray(route, dtype=np.int64), px)
-        yx = np.stack([y, x], axis=1) * scale
-        turn = np.ones(len(yx), dtype=bool)
-        d = np.diff(yx, axis=0)
-        turn[1:-1] = np.any(d[1:] != d[:-1], axis=1)
-        corners = yx[turn]
-        if kept + len(corners) > max_points:
-            break
-        rows = np.empty((len(corners), 3), dtype=np.int32)
-        rows[:, 0] = trap_index(np.array([route[0]]), nx, half)[0]
-        rows[:, 1:] = corners
-        out.append(rows)
-        kept += len(corners)
-    return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.int32)
+    if not routes:
+        return np.zeros((0, 3), dtype=np.int32)
+    # all routes end to end, corners found at once (a loop per atom costs ~40 ms for a 32x64 bulk plan)
+    lengths = np.fromiter(map(len, routes), dtype=np.int64, count=len(routes))
+    flat = np.fromiter(chain.from_iterable(routes), dtype=np.int64, count=int(lengths.sum()))
+    first = np.r_[0, np.cumsum(lengths)[:-1]]
+    y, x = np.divmod(flat, n_positions(nx, half))
+    yx = np.stack([y, x], axis=1) * (2 // half)
+    d = np.diff(yx, axis=0)
+    turn = np.zeros(len(flat), dtype=bool)
+    turn[1:-1] = np.any(d[1:] != d[:-1], axis=1)
+    turn[first] = turn[first + lengths - 1] = True  # every route's own start and end
+    route_of = np.repeat(np.arange(len(routes)), lengths)[turn]
+    kept = np.cumsum(np.bincount(route_of, minlength=len(routes))) <= max_points  # whole routes, a prefix
+    rows = np.empty((int(turn.sum()), 3), dtype=np.int32)
+    rows[:, 0] = trap_index(flat[first], nx, half)[route_of]
+    rows[:, 1:] = yx[turn]
+    return rows[kept[route_of]]
 
 
 def atoms_in_flight(ops: Operations, occupancy: np.ndarray, n_played: int, *, chain: bool) -> np.ndarray:

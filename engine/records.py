@@ -56,7 +56,7 @@ def atom_moves(steps: np.ndarray, *, nx: int = 0, half: int = 1) -> np.ndarray:
     return (trap_index(rows, nx, half) if half > 1 else rows).astype(np.int32)
 
 
-PATH_POINTS_MAX = 1 << 15  # corner points a cycle record keeps of its plan's routes (384 KiB in a run file)
+PATH_POINTS_MAX = 1 << 15  # corner points a cycle keeps of its plan's routes (at most 640 KiB of i4 rows)
 
 
 def atom_paths(steps: np.ndarray, *, nx: int, half: int = 1, max_points: int = PATH_POINTS_MAX) -> np.ndarray:

@@ -147,7 +147,10 @@ class _RunFile:
                 name, shape=(0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(rows, *tail)
             )
         self.ds["moves"] = f.create_dataset("moves", shape=(0, 4), maxshape=(None, 4), dtype="i4", chunks=(1024, 4))
-        self.ds["paths"] = f.create_dataset("paths", shape=(0, 5), maxshape=(None, 5), dtype="i4", chunks=(4096, 5))
+        self.ds["paths"] = f.create_dataset(  # gzip: shot, cycle and source repeat down the rows
+            "paths", shape=(0, 5), maxshape=(None, 5), dtype="i4", chunks=(4096, 5), compression="gzip",
+            compression_opts=1, shuffle=True,
+        )
         self.frames_every = frames.every_nth_shot
         self.frame_shape = frame_shape(config.camera)
         self.frames_max = frames.max_frames(self.frame_shape) if self.frames_every else 0

@@ -23,7 +23,7 @@ from engine.devices import DeviceError, DeviceSet
 from engine.host import EngineCommands
 from engine.imaging import Detector, calibration_frames
 from engine.operations import Operations
-from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves, atoms_in_flight
+from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves, atom_paths, atoms_in_flight
 from engine.routing import positions_of, positions_per_site
 from engine.solvers import LossWeights, Planner, Solver, UnsolvableError
 from engine.streaming import Streamer
@@ -274,6 +274,7 @@ class Engine:
                 gc.enable()
         record.duration_s = clock.now_s() - record.t_start_s
         cycle_reports = self.lab.cycle_reports(n_cycles) if self.lab is not None else [{} for _ in range(n_cycles)]
+        half = positions_per_site(p.config.array.routing)
         for c in range(n_cycles):
             occ = p.history[c].copy()
             record.cycles.append(
@@ -290,13 +291,13 @@ class Engine:
                     t_start_s=float(cycle_times[c, 0] - record.t_start_s),
                     t_image_s=float(cycle_times[c, 1] - record.t_start_s),
                     counts=p.counts_history[c].copy(),
-                    moves=atom_moves(steps, nx=p.config.array.nx, half=positions_per_site(p.config.array.routing))
+                    moves=atom_moves(steps, nx=p.config.array.nx, half=half)
                     if (steps := p.steps_history[c]) is not None
                     else None,
+                    paths=atom_paths(steps, nx=p.config.array.nx, half=half) if steps is not None else None,
                     planner=planners[c],
                     in_flight=p.in_flight_history[c],
-                    pickups=_pickups(slots, occ, chain=p.config.array.trap_source == "aod",
-                                     half=positions_per_site(p.config.array.routing))
+                    pickups=_pickups(slots, occ, chain=p.config.array.trap_source == "aod", half=half)
                     if (slots := p.slots_history[c]) is not None
                     else 0,
                     lab_report=cycle_reports[c],

@@ -4,15 +4,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
+from itertools import chain
 from typing import Any
 
 import numpy as np
 
 from engine.move_model import MoveState, new_events, replay_operations
 from engine.operations import Operations
-from engine.routing import positions_of, trap_index
+from engine.routing import n_positions, positions_of, trap_index
 
-__all__ = ["CycleRecord", "Outcome", "ShotRecord", "atom_moves", "atoms_in_flight", "occupancy_to_rows"]
+__all__ = [
+    "PATH_POINTS_MAX", "CycleRecord", "Outcome", "ShotRecord", "atom_moves", "atom_paths", "atoms_in_flight",
+    "occupancy_to_rows",
+]  # fmt: skip
 
 
 class Outcome(StrEnum):
@@ -27,20 +31,63 @@ def occupancy_to_rows(occupancy: np.ndarray) -> list[str]:
     return ["".join("1" if v else "0" for v in row) for row in np.asarray(occupancy, dtype=bool)]
 
 
+def _routes(steps: np.ndarray) -> list[list[int]]:
+    """Every atom a plan's steps (``int[m, 2]``: source, destination site, in execution order) touch, followed
+    through them: its sites in order, the one it started on first. A step from a site where an earlier step
+    left an atom continues that atom's route (a relay moves several atoms, each its own route)."""
+    at: dict[int, list[int]] = {}  # site an atom is at now -> its route so far
+    for src, dst in np.asarray(steps, dtype=np.int64).reshape(-1, 2):
+        route = at.pop(int(src), None) or [int(src)]
+        route.append(int(dst))
+        at[int(dst)] = route
+    return list(at.values())
+
+
 def atom_moves(steps: np.ndarray, *, nx: int = 0, half: int = 1) -> np.ndarray:
     """A plan's one-site steps (``int[m, 2]``: source, destination, in execution order) as one row per moved
     atom: ``int32[k, 2]`` (the trap it started in, the trap it ended in), sorted by source.
 
-    An atom is followed through its steps: a step from a site where an earlier step left an atom continues
-    that atom's path. Atoms whose steps bring them back to their start do not count as moved. Steps of an
-    interstitial plan (``half = 2``, an array of ``nx`` traps) are between positions; the rows are traps.
+    An atom is followed through its steps (``_routes``). Atoms whose steps bring them back to their start do
+    not count as moved. Steps of an interstitial plan (``half = 2``, an array of ``nx`` traps) are between
+    positions; the rows are traps.
     """
-    origin_of: dict[int, int] = {}  # site an atom is at now -> the trap it started the plan in
-    for src, dst in np.asarray(steps, dtype=np.int64).reshape(-1, 2):
-        origin_of[int(dst)] = origin_of.pop(int(src), int(src))
-    moves = sorted((start, end) for end, start in origin_of.items() if start != end)
+    moves = sorted((route[0], route[-1]) for route in _routes(steps) if route[0] != route[-1])
     rows = np.array(moves, dtype=np.int64).reshape(-1, 2)
     return (trap_index(rows, nx, half) if half > 1 else rows).astype(np.int32)
+
+
+PATH_POINTS_MAX = 1 << 15  # corner points a cycle keeps of its plan's routes (at most 640 KiB of i4 rows)
+
+
+def atom_paths(steps: np.ndarray, *, nx: int, half: int = 1, max_points: int = PATH_POINTS_MAX) -> np.ndarray:
+    """The route of every atom ``atom_moves`` lists, as its corner points, so that a plan can be drawn as the
+    atoms really travelled (through the channels between traps under interstitial routing, trap to trap for a
+    lattice relay) and not as straight arrows: ``int32[n, 3]`` rows (the trap it started in, y, x), with y and x
+    on the **half-site grid** (2 per site whatever the routing: odd is a channel), grouped by atom in the
+    order of ``atom_moves``, each route from its start to its end with a point where its direction changes.
+
+    ``steps`` as for ``atom_moves`` (positions of ``half`` per site on an array of ``nx`` traps). The size is
+    bounded: routes are kept whole, atom after atom, up to ``max_points`` rows; the atoms after that keep only
+    their straight move. Run after the plan has played (a Python walk over its steps, as ``atom_moves``)."""
+    routes = sorted((r for r in _routes(steps) if r[0] != r[-1]), key=lambda r: r[0])
+    if not routes:
+        return np.zeros((0, 3), dtype=np.int32)
+    # all routes end to end, corners found at once (a loop per atom costs ~40 ms for a 32x64 bulk plan)
+    lengths = np.fromiter(map(len, routes), dtype=np.int64, count=len(routes))
+    flat = np.fromiter(chain.from_iterable(routes), dtype=np.int64, count=int(lengths.sum()))
+    first = np.r_[0, np.cumsum(lengths)[:-1]]
+    y, x = np.divmod(flat, n_positions(nx, half))
+    yx = np.stack([y, x], axis=1) * (2 // half)
+    d = np.diff(yx, axis=0)
+    turn = np.zeros(len(flat), dtype=bool)
+    turn[1:-1] = np.any(d[1:] != d[:-1], axis=1)
+    turn[first] = turn[first + lengths - 1] = True  # every route's own start and end
+    route_of = np.repeat(np.arange(len(routes)), lengths)[turn]
+    kept = np.cumsum(np.bincount(route_of, minlength=len(routes))) <= max_points  # whole routes, a prefix
+    rows = np.empty((int(turn.sum()), 3), dtype=np.int32)
+    rows[:, 0] = trap_index(flat[first], nx, half)[route_of]
+    rows[:, 1:] = yx[turn]
+    return rows[kept[route_of]]
 
 
 def atoms_in_flight(ops: Operations, occupancy: np.ndarray, n_played: int, *, chain: bool) -> np.ndarray:
@@ -90,6 +137,8 @@ class CycleRecord:
     # so the live messages stay small: routes that need them read them from the record or the run file.
     counts: np.ndarray | None = None  # float32[n_traps]: the PSF-weighted counts of this cycle's image
     moves: np.ndarray | None = None  # int32[k, 2]: the plan's moved atoms, (source, destination) trap index
+    # int32[n, 3]: their routes' corner points, (source trap, y, x) on the half-site grid (``atom_paths``)
+    paths: np.ndarray | None = None
     # per underrun of this cycle's plan, the atoms its failsafe held mid-move: [source trap, site] pairs
     # (``atoms_in_flight``; empty when the plan streamed without an underrun)
     in_flight: list[list[list[int]]] = field(default_factory=list)

@@ -45,6 +45,7 @@ __all__ = [
     "imaging_summary",
     "lab_stats",
     "plan_svg",
+    "route_points_px",
     "population_curves",
     "threshold_series",
     "worst_traps",
@@ -684,27 +685,46 @@ def cycles_histogram(cycles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # -- history: a recorded cycle with its plan drawn as arrows ----------------------------------------------------
 
 
+def route_points_px(points: np.ndarray, cells: np.ndarray, nx: int, cell_px: float) -> np.ndarray:
+    """Corner points of a route (``float[m, 2]``: row, column in sites; halves are channels between traps) ->
+    picture pixels ``float[m, 2]`` (x, y). A point between traps is the mean of the cells of the traps around
+    it, so a route is drawn on whatever grid the traps sit (a camera that flips or swaps the array's axes)."""
+    yx = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    out = np.zeros_like(yx)
+    for lo_y, lo_x in ((np.floor, np.floor), (np.floor, np.ceil), (np.ceil, np.floor), (np.ceil, np.ceil)):
+        out += cells[lo_y(yx[:, 0]).astype(np.int64) * nx + lo_x(yx[:, 1]).astype(np.int64)]
+    return (out / 4 + 0.5) * cell_px
+
+
 def plan_svg(
     occupancy: Sequence[str], target: Sequence[str], positions_xy: np.ndarray, moves: np.ndarray | None,
-    *, max_width_px: float = 720, title: str | None = None,
+    *, paths: Mapping[int, np.ndarray] | None = None, max_width_px: float = 720, title: str | None = None,
 ) -> str:
-    """The atom map of one cycle with its plan over it: an arrow from each moved atom's trap to where the plan
-    leaves it (``moves``: ``int[k, 2]`` source, destination)."""
+    """The atom map of one cycle with its plan over it: each moved atom's route (``paths``: source trap ->
+    ``float[m, 2]`` corner points, row and column in sites, ``3.5`` a channel) as a polyline with an arrow head
+    where it ends, so a route through the channels or a lattice relay shows as the atoms travelled; a moved atom
+    without a route (``moves``: ``int[k, 2]`` source, destination; older run files) as a straight arrow."""
     cells, across, _ = trap_layout(positions_xy)
     svg = atom_map_svg(occupancy, target, positions_xy, max_width_px=max_width_px, title=title)
     if moves is None or len(moves) == 0:
         return svg
     cell = max(3.0, min(22.0, max_width_px / across))
+    style = f'stroke="#333" stroke-width="{max(0.8, 0.08 * cell):.1f}" marker-end="url(#arrow-head)"'
     arrows = [
         '<defs><marker id="arrow-head" viewBox="0 0 10 10" refX="9" refY="5" markerWidth="4" markerHeight="4" '
         'orient="auto-start-reverse"><path d="M0,0 L10,5 L0,10 z" fill="#333"/></marker></defs>'
     ]
+    paths = paths or {}
+    nx = len(occupancy[0])
     for src, dst in np.asarray(moves, dtype=np.int64):
+        route = paths.get(int(src))
+        if route is not None and len(route) >= 2:
+            xy = route_points_px(route, cells, nx, cell)
+            points = " ".join(f"{x:.1f},{y:.1f}" for x, y in xy)
+            arrows.append(f'<polyline class="move path" points="{points}" fill="none" {style}/>')
+            continue
         (x0, y0), (x1, y1) = (cells[src] + 0.5) * cell, (cells[dst] + 0.5) * cell
-        arrows.append(
-            f'<line class="move" x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="#333" '
-            f'stroke-width="{max(0.8, 0.08 * cell):.1f}" marker-end="url(#arrow-head)"/>'
-        )
+        arrows.append(f'<line class="move" x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" {style}/>')
     return svg.replace("</svg>", "".join(arrows) + "</svg>")
 
 
@@ -849,13 +869,16 @@ def clamp_cycle(shot: Mapping[str, Any], cycle: int) -> int:
 
 
 def history_html(shot: Mapping[str, Any], cycle: int, positions_xy: np.ndarray, *, download_url: str) -> str:
-    """A recorded shot (``GET /api/runs/{name}/shots/{index}``) at one cycle: its atom map with the plan as
-    arrows, the plan's size (pick-ups where recorded), the atoms the lab lost after it by cause (where the lab
-    reported them), whether its camera frame is kept, the stage times, and a link to download the run file."""
+    """A recorded shot (``GET /api/runs/{name}/shots/{index}``) at one cycle: its atom map with the plan drawn
+    as the routes the atoms took (through the channels under interstitial routing; straight arrows where a
+    run file has no routes), the plan's size (pick-ups where recorded), the atoms the lab lost after it by
+    cause (where the lab reported them), whether its camera frame is kept, the stage times, and a link to
+    download the run file."""
     cycles = shot["cycles"]
     c = cycles[clamp_cycle(shot, cycle)]
     moves = np.array(c.get("moves") or [], dtype=np.int64).reshape(-1, 2)
-    svg = plan_svg(c["occupancy"], shot["target"], positions_xy, moves, max_width_px=680)
+    paths = {int(p["source"]): np.asarray(p["points"], dtype=np.float64) for p in c.get("paths") or []}
+    svg = plan_svg(c["occupancy"], shot["target"], positions_xy, moves, paths=paths, max_width_px=680)
     stages = " · ".join(f"{k} {v / 1e3:.3f} ms" for k, v in c["stage_us"].items())
     pickups = "" if c.get("pickups") is None else f", {c['pickups']} pick-ups"
     lost = (c.get("truth") or {}).get("lost_by_cause")
@@ -865,7 +888,8 @@ def history_html(shot: Mapping[str, Any], cycle: int, positions_xy: np.ndarray, 
     )
     return (
         f'<div id="history" data-shot-id="{int(shot["shot_id"])}" data-cycle="{c["index"]}" '
-        f'data-cycles="{len(cycles)}" data-moves="{len(moves)}" data-frame="{int(bool(c.get("frame")))}" '
+        f'data-cycles="{len(cycles)}" data-moves="{len(moves)}" data-paths="{len(paths)}" '
+        f'data-frame="{int(bool(c.get("frame")))}" '
         f'data-lost="{"" if lost is None else sum(lost.values())}" style="font-size:12px">'
         f'<b>shot {int(shot["shot_id"])}</b> ({html.escape(shot["outcome"])}), cycle {c["index"]} of '
         f"{len(cycles)}: {c['atoms']} atoms, {c['defects']} missing, plan {c['n_slots']} slots, "

@@ -16,12 +16,16 @@ configuration, a one-shot override included, starts a new file, so each file's s
   -1: the lab reported nothing for that cycle, as on hardware). Cycles past ``n_cycles`` are zero.
 - ``moves`` ``i4[row, 4]``: one row per atom a plan moved, ``(shot index in this file, cycle, source trap,
   destination trap)``, appended shot after shot.
+- ``paths`` ``i4[row, 5]``: the routes of those atoms as their corner points, ``(shot index in this file, cycle,
+  source trap, y, x)`` with y and x on the half-site grid (2 per site; odd: the channel between two rows or
+  columns of traps, where interstitial routing carries atoms), each route in order from its start to its end,
+  at most ``engine.records.PATH_POINTS_MAX`` rows per cycle (``engine.records.atom_paths``).
 - camera frames, only when the store keeps them (``FrameKeeping``; attr ``frames_every_nth_shot``, 0: none):
   ``frames`` ``u2[k, h, w]`` (gzip-compressed, one chunk per frame) and ``frame_index`` ``i4[k, 2]`` (shot index
   in this file, cycle) for each kept frame, in order. At most ``frames_max`` frames go into one file.
 
-Files written before ``counts``, ``atoms_moved``, ``moves``, ``planner``, ``pickups``, ``lost_by_cause`` and
-``frames`` existed lack them; the readers below cope.
+Files written before ``counts``, ``atoms_moved``, ``moves``, ``paths``, ``planner``, ``pickups``,
+``lost_by_cause`` and ``frames`` existed lack them; the readers below cope.
 
 Why it survives crashes: the file is written in HDF5's single-writer/multiple-reader (SWMR) mode. After the
 datasets are created no new object is ever added; a shot only extends chunked datasets, and each dataset is
@@ -143,6 +147,10 @@ class _RunFile:
                 name, shape=(0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(rows, *tail)
             )
         self.ds["moves"] = f.create_dataset("moves", shape=(0, 4), maxshape=(None, 4), dtype="i4", chunks=(1024, 4))
+        self.ds["paths"] = f.create_dataset(  # gzip: shot, cycle and source repeat down the rows
+            "paths", shape=(0, 5), maxshape=(None, 5), dtype="i4", chunks=(4096, 5), compression="gzip",
+            compression_opts=1, shuffle=True,
+        )
         self.frames_every = frames.every_nth_shot
         self.frame_shape = frame_shape(config.camera)
         self.frames_max = frames.max_frames(self.frame_shape) if self.frames_every else 0
@@ -180,7 +188,7 @@ class _RunFile:
         latency = np.zeros(c, dtype=np.float32)
         counts = np.zeros((c, self.shape[0] * self.shape[1]), dtype=np.float32)
         atoms_moved = np.zeros(c, dtype=np.int32)
-        moves = []
+        moves, paths = [], []
         planner = np.zeros(c, dtype="S32")
         pickups = np.zeros(c, dtype=np.int32)
         lost_by_cause = np.zeros((c, len(LOSS_CAUSES)), dtype=np.int32)
@@ -198,6 +206,10 @@ class _RunFile:
                 rows = np.empty((len(cyc.moves), 4), dtype=np.int32)
                 rows[:, 0], rows[:, 1], rows[:, 2:] = self.n, cyc.index, cyc.moves
                 moves.append(rows)
+            if cyc.paths is not None and len(cyc.paths):
+                rows = np.empty((len(cyc.paths), 5), dtype=np.int32)
+                rows[:, 0], rows[:, 1], rows[:, 2:] = self.n, cyc.index, cyc.paths
+                paths.append(rows)
             planner[cyc.index] = cyc.planner.encode()[:32]
             pickups[cyc.index] = cyc.pickups
             lost = cyc.lab_report.get("lost_by_cause")
@@ -227,12 +239,13 @@ class _RunFile:
             ds = self.ds[name]
             ds.resize(i + 1, axis=0)
             ds[i] = value
-        if moves:
-            new = np.concatenate(moves)
-            ds = self.ds["moves"]
-            start = ds.shape[0]
-            ds.resize(start + len(new), axis=0)
-            ds[start:] = new
+        for name, parts in (("moves", moves), ("paths", paths)):
+            if parts:
+                new = np.concatenate(parts)
+                ds = self.ds[name]
+                start = ds.shape[0]
+                ds.resize(start + len(new), axis=0)
+                ds[start:] = new
         if frames:
             start = self.ds["frames"].shape[0]
             for name in ("frames", "frame_index"):
@@ -292,11 +305,31 @@ def read_run_frame(f: h5py.File, index: int, cycle: int) -> np.ndarray:
     return np.asarray(f["frames"][row])
 
 
+def _paths_of(f: h5py.File, index: int) -> dict[int, list[dict[str, Any]]]:
+    """Cycle -> the routes of shot ``index``'s moved atoms: ``[{"source": trap, "points": [[y, x], ...]}]``, the
+    corner points in sites (``3.5``: the channel between rows 3 and 4), start to end (none in older files)."""
+    out: dict[int, list[dict[str, Any]]] = {}
+    if "paths" not in f or not f["paths"].shape[0]:
+        return out
+    rows = f["paths"][:]
+    rows = rows[rows[:, 0] == index]
+    for cycle in np.unique(rows[:, 1]):
+        of_cycle = rows[rows[:, 1] == cycle]
+        # a route ends where the next atom's begins: the source changes (routes are stored atom after atom)
+        starts = np.flatnonzero(np.r_[True, of_cycle[1:, 2] != of_cycle[:-1, 2]])
+        out[int(cycle)] = [
+            {"source": int(part[0, 2]), "points": (part[:, 3:] / 2).tolist()}
+            for part in np.split(of_cycle, starts[1:])
+        ]
+    return out
+
+
 def read_run_shot(f: h5py.File, index: int) -> dict[str, Any]:
     """Shot ``index`` (0-based, in file order) of an open run file, shaped as ``ShotRecord.to_dict()`` plus,
-    per cycle, ``moves`` (``[[source, destination], ...]``), ``counts`` (the weighted sums, where recorded) and
-    ``frame`` (whether its camera frame is kept: ``read_run_frame``); a cycle's ``truth`` holds the lab's
-    ``lost_by_cause`` where it reported one. ``IndexError`` if the file holds fewer shots."""
+    per cycle, ``moves`` (``[[source, destination], ...]``), ``paths`` (the moved atoms' routes: ``_paths_of``),
+    ``counts`` (the weighted sums, where recorded) and ``frame`` (whether its camera frame is kept:
+    ``read_run_frame``); a cycle's ``truth`` holds the lab's ``lost_by_cause`` where it reported one.
+    ``IndexError`` if the file holds fewer shots."""
     _check_shot(f, index)
     stages = json.loads(_decode(f.attrs["stages"]))
     n_cycles = int(f["n_cycles"][index])
@@ -314,6 +347,7 @@ def read_run_shot(f: h5py.File, index: int) -> dict[str, Any]:
         rows = f["moves"][:]
         for _, cycle, src, dst in rows[rows[:, 0] == index]:
             moves_of.setdefault(int(cycle), []).append([int(src), int(dst)])
+    paths_of = _paths_of(f, index)
     target = np.asarray(f["target"][:], dtype=bool)
     cycles = []
     for c in range(n_cycles):
@@ -331,6 +365,7 @@ def read_run_shot(f: h5py.File, index: int) -> dict[str, Any]:
             "atoms_moved": len(moves_of.get(c, [])),
             "pickups": None if pickups is None else int(pickups[c]),
             "moves": moves_of.get(c, []),
+            "paths": paths_of.get(c, []),
             "counts": None if counts is None else [float(v) for v in counts[c]],
             "frame": c in frames,
             "truth": {} if lost is None or lost[c, 0] < 0 else {

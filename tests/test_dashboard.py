@@ -3,17 +3,20 @@ controls go through the service (a refused change is shown, and changes nothing)
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
 import httpx
+import numpy as np
 import pytest
 
 from conftest import wait_until
 from dashboard_fakes import dashboard_on_fake_lab
+from frontend import views
 from frontend.dashboard import Dashboard
-from server.runstore import FrameKeeping
+from server.runstore import FrameKeeping, RunStore
 from server.service import LabService
 from server_fakes import fake_lab_service
 
@@ -131,3 +134,49 @@ def test_new_controls_are_read_only_without_the_token(tmp_path: Path) -> None:
             assert service.trap_stats.get(digest) is None
         finally:
             dashboard.stop()
+
+
+def test_a_recorded_interstitial_shot_shows_each_atom_route_through_the_channels(tmp_path: Path) -> None:
+    """On the simulated lab under interstitial routing (the repair planner), a shot read back from its run file
+    draws each moved atom's route as a polyline whose corners leave the traps for the channels between them,
+    not as straight arrows."""
+    from engine.config import load_config
+    from server.serve import engine_host_factory
+
+    config = load_config(Path(__file__).resolve().parents[1] / "examples/grid-16x32.yaml")
+    config = config.model_copy(update={
+        "array": config.array.model_copy(update={"routing": "interstitial"}),
+        "solver": config.solver.model_copy(update={"algorithm": "repair", "strategy": None}),
+        "sim": config.sim.model_copy(update={"lossless": True, "seed": 3}),
+    })  # fmt: skip
+    factory = engine_host_factory(in_process=False, cpu=None)
+    service = LabService(engine_thread=factory(config), engine_factory=factory, config=config,
+                         store=RunStore(tmp_path / "runs"), pause_s=0.0).start()
+    dashboard = Dashboard(service, port=0, refresh_s=0.05)
+    dashboard.start()
+    try:
+        record = service.shot()
+        moved = record.cycles[0].atoms_moved
+        assert moved > 0
+        service.run_store.flush()  # type: ignore[union-attr]
+        dashboard._list_runs()
+        dashboard.d_run.value = dashboard.d_run.options[0]
+        dashboard.n_shot.value, dashboard.n_cycle.value = 0, 0
+        dashboard._history_shown = None
+        wait_until(lambda: f'data-shot-id="{record.shot_id}" data-cycle="0"' in dashboard.h_history.content,
+                   what="the recorded shot")
+        content = dashboard.h_history.content
+        _, across, _ = views.trap_layout(dashboard._positions)
+    finally:
+        dashboard.stop()
+        service.close()
+    assert f'data-moves="{moved}" data-paths="{moved}"' in content
+    routes = re.findall(r'<polyline class="move path" points="([^"]+)"', content)
+    assert len(routes) == moved and '<line class="move"' not in content
+    cell = min(22.0, 680 / across)  # the History tab's picture: 680 px across at most
+    for route in routes:
+        xy = np.array([[float(v) for v in p.split(",")] for p in route.split()]) / cell - 0.5  # in picture cells
+        assert len(xy) >= 3  # out of the trap into a channel, along, back onto a trap
+        assert np.allclose(xy[[0, -1]], np.round(xy[[0, -1]]), atol=0.01)  # starts and ends on traps
+        inner = xy[1:-1]
+        assert np.all(np.any(np.abs(inner - np.round(inner)) > 0.4, axis=1))  # every turn is in a channel

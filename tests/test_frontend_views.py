@@ -261,6 +261,46 @@ def test_plan_svg_draws_an_arrow_per_moved_atom() -> None:
     assert views.plan_svg(["11001010"], ["00111100"], chain_positions(), None).count('class="move"') == 0
 
 
+def grid_positions(ny: int, nx: int, *, transposed: bool = False) -> np.ndarray:
+    """Trap centres (camera pixels, trap order row-major) of an ``ny`` x ``nx`` array 16 px apart; ``transposed``:
+    a camera that sees the array's rows as picture columns."""
+    r, c = np.divmod(np.arange(ny * nx), nx)
+    x, y = (r, c) if transposed else (c, r)
+    return np.stack([8.0 + 16.0 * x, 8.0 + 16.0 * y], axis=1)
+
+
+def polylines(svg: str) -> list[str]:
+    return re.findall(r'<polyline class="move path" points="([^"]+)"', svg)
+
+
+def test_plan_svg_draws_an_interstitial_route_through_the_channels() -> None:
+    """The atom at trap (0, 0) goes to (2, 2) as interstitial routing carries it: into the channel below row 0,
+    along it to the channel between columns 1 and 2, down that one to row 2, onto the trap. Drawn as a
+    polyline through those corners (22 px cells) ending in an arrow head, on the array's geometry as the
+    camera sees it (rows as picture rows, or as picture columns)."""
+    occupancy, target = ["1000", "0000", "0000"], ["0000", "0000", "0010"]
+    route = np.array([[0, 0], [0.5, 0], [0.5, 1.5], [2, 1.5], [2, 2]])
+    moves = np.array([[0, 10]])
+    svg = views.plan_svg(occupancy, target, grid_positions(3, 4), moves, paths={0: route})
+    assert polylines(svg) == ["11.0,11.0 11.0,22.0 44.0,22.0 44.0,55.0 55.0,55.0"]
+    assert 'marker-end="url(#arrow-head)"' in svg and "<line " not in svg
+    flipped = views.plan_svg(occupancy, target, grid_positions(3, 4, transposed=True), moves, paths={0: route})
+    assert polylines(flipped) == ["11.0,11.0 22.0,11.0 22.0,44.0 55.0,44.0 55.0,55.0"]
+    # a moved atom without a route (a run file written before routes were kept) keeps its straight arrow
+    assert views.plan_svg(occupancy, target, grid_positions(3, 4), moves).count('<line class="move"') == 1
+
+
+def test_plan_svg_draws_a_lattice_relay_atom_by_atom() -> None:
+    """A relay on the chain: the atom at 1 steps to 2 and on to 3 while the one at 0 takes its place at 1 and
+    the one at 6 goes to 5; each atom's own route, trap to trap (22 px cells on the chain of 8)."""
+    svg = views.plan_svg(
+        ["11000010"], ["01110000"], chain_positions(), np.array([[0, 1], [1, 3], [6, 5]]),
+        paths={0: np.array([[0, 0], [0, 1]]), 1: np.array([[0, 1], [0, 3]]), 6: np.array([[0, 6], [0, 5]])},
+    )
+    assert polylines(svg) == ["11.0,11.0 33.0,11.0", "33.0,11.0 77.0,11.0", "143.0,11.0 121.0,11.0"]
+    assert svg.count('class="move') == 3
+
+
 def test_history_html_shows_a_recorded_cycle_with_its_losses_and_frame() -> None:
     """A historic shot's cycle as the run file gives it back: plan arrows, pick-ups, the lab's losses by cause
     (causes with none left out), whether a frame is kept; a cycle out of range shows the nearest one."""
@@ -274,7 +314,10 @@ def test_history_html_shows_a_recorded_cycle_with_its_losses_and_frame() -> None
     assert 'data-cycle="0"' in first and 'data-frame="1"' in first and 'data-lost="3"' in first
     assert "2 pick-ups" in first and "camera frame kept" in first
     assert re.findall(r'data-cause="(\w+)"', first) == ["transfer", "released"]
-    assert first.count('class="move"') == 2
+    assert first.count('class="move"') == 2 and 'data-paths="0"' in first  # no routes recorded: arrows
+    cycle["paths"] = [{"source": 0, "points": [[0, 0], [0, 2]]}, {"source": 1, "points": [[0, 1], [0, 3]]}]
+    routed = views.history_html(shot, 0, chain_positions(), download_url="/api/runs/x.h5")
+    assert 'data-paths="2"' in routed and len(polylines(routed)) == 2 and 'class="move"' not in routed
     assert views.clamp_cycle(shot, 7) == 1 and views.clamp_cycle(shot, -1) == 0
     beyond = views.history_html(shot, 7, chain_positions(), download_url="/api/runs/x.h5")
     assert 'data-cycle="1"' in beyond and 'data-frame="0"' in beyond and 'data-lost=""' in beyond

@@ -204,6 +204,19 @@ def test_a_lossless_closed_loop_shot_fills_the_target_and_leaves_the_other_atoms
         untouched = np.array([a for a in untouched if a not in moved_from], dtype=np.int64)
         assert final.ravel()[untouched].all()
         assert first.pickups == first.moves.shape[0]
+        # each moved atom's route, recorded after the shot: from its trap to its destination through channels
+        assert first.paths is not None
+        sources, starts = np.unique(first.paths[:, 0], return_index=True)
+        np.testing.assert_array_equal(sources, first.moves[:, 0])
+        ends = np.r_[starts[1:], len(first.paths)] - 1
+        half_sites = first.paths[:, 1:]
+        nx = occ.shape[1]
+        np.testing.assert_array_equal(half_sites[starts] // 2 @ [nx, 1], first.moves[:, 0])
+        np.testing.assert_array_equal(half_sites[ends] // 2 @ [nx, 1], first.moves[:, 1])
+        assert not (half_sites[starts] % 2).any() and not (half_sites[ends] % 2).any()
+        inner = np.ones(len(half_sites), dtype=bool)
+        inner[starts] = inner[ends] = False
+        assert (half_sites[inner] % 2).any(axis=1).all()  # every turn in a channel, none on a trap
     counters = lab.world.counters
     assert counters.captured == 0 and counters.lost == 0
 

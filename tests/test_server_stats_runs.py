@@ -84,7 +84,7 @@ def test_a_valid_name_that_is_not_there_is_404(client: TestClient) -> None:
     assert client.get("/api/runs/20000101-000000-0.h5").status_code == 404
 
 
-def test_run_file_keeps_counts_and_moved_atoms(tmp_path: Path) -> None:
+def test_run_file_keeps_counts_moved_atoms_and_their_routes(tmp_path: Path) -> None:
     config = example_config()
     ny, nx = config.array.ny, config.array.nx
     store = RunStore(tmp_path)
@@ -97,7 +97,10 @@ def test_run_file_keeps_counts_and_moved_atoms(tmp_path: Path) -> None:
         outcome=Outcome.SUCCESS,
         cycles=[
             CycleRecord(index=0, occupancy=occ, atoms=3, defects=0, n_slots=4, counts=counts,
-                        moves=np.array([[0, 1], [5, 2]], dtype=np.int32), pickups=3),
+                        moves=np.array([[0, 1], [5, 2]], dtype=np.int32), pickups=3,
+                        # routes on the half-site grid: 0 -> 1 straight; 5 -> 2 through the channel below row 0
+                        paths=np.array([[0, 0, 0], [0, 0, 2], [5, 0, 10], [5, 1, 10], [5, 1, 4], [5, 0, 4]],
+                                       dtype=np.int32)),
             CycleRecord(index=1, occupancy=occ, atoms=3, defects=0, counts=counts + 1),
         ],
     )
@@ -110,6 +113,10 @@ def test_run_file_keeps_counts_and_moved_atoms(tmp_path: Path) -> None:
         store.close()
     assert shot["cycles"][0]["moves"] == [[0, 1], [5, 2]] and shot["cycles"][0]["atoms_moved"] == 2
     assert shot["cycles"][1]["moves"] == []
+    assert shot["cycles"][0]["paths"] == [
+        {"source": 0, "points": [[0, 0], [0, 1]]}, {"source": 5, "points": [[0, 5], [0.5, 5], [0.5, 2], [0, 2]]},
+    ]  # in sites: 0.5 is the channel between rows 0 and 1
+    assert shot["cycles"][1]["paths"] == []
     assert [c["pickups"] for c in shot["cycles"]] == [3, 0]
     np.testing.assert_array_equal(shot["cycles"][1]["counts"], counts + 1)
     reopened = RunStore(tmp_path)

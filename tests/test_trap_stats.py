@@ -9,7 +9,7 @@ import pytest
 from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine
-from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves
+from engine.records import CycleRecord, Outcome, ShotRecord, atom_moves, atom_paths
 from engine.trap_stats import StatsBook, TrapStatistics
 
 NAN = np.nan
@@ -128,3 +128,30 @@ def test_held_shots_keep_counts_only_while_latest() -> None:
     assert first.cycles[0].counts is not None
     history.drop_counts_of_older_shots(second)
     assert first.cycles[0].counts is None and second.cycles[0].counts is not None
+
+
+def test_atom_paths_keep_the_corners_of_a_route_through_the_channels() -> None:
+    """Interstitial (positions every half site, 3 traps across: 5 positions): the atom at trap 0 steps into the
+    channel below row 0, along it past trap 1, and back up onto trap 2; its corners on the half-site grid."""
+    y_x = [(0, 0), (1, 0), (1, 1), (1, 2), (1, 3), (1, 4), (0, 4)]
+    steps = np.array([(a[0] * 5 + a[1], b[0] * 5 + b[1]) for a, b in zip(y_x, y_x[1:], strict=False)])
+    paths = atom_paths(steps, nx=3, half=2)
+    np.testing.assert_array_equal(paths, [[0, 0, 0], [0, 1, 0], [0, 1, 4], [0, 0, 4]])
+    np.testing.assert_array_equal(atom_moves(steps, nx=3, half=2), [[0, 2]])  # the same atoms, in the same order
+
+
+def test_atom_paths_follow_each_atom_of_a_lattice_relay() -> None:
+    """Lattice (a position per site, 2 rows of 8 traps): a relay pushes the atom at 3 on to 4 as the one at 2
+    takes its place; the atom at 0 goes along row 0 to 1, then down to 9; 7 -> 15 -> 7 stays put.
+    Corners are in half sites (2 per site) whatever the routing."""
+    steps = np.array([[3, 4], [2, 3], [0, 1], [1, 9], [7, 15], [15, 7]])
+    paths = atom_paths(steps, nx=8)
+    np.testing.assert_array_equal(paths, [
+        [0, 0, 0], [0, 0, 2], [0, 2, 2],  # 0 -> 1 -> 9: one turn
+        [2, 0, 4], [2, 0, 6],
+        [3, 0, 6], [3, 0, 8],
+    ])  # fmt: skip
+    np.testing.assert_array_equal(np.unique(paths[:, 0]), atom_moves(steps, nx=8)[:, 0])
+    # the bound keeps whole routes, atom after atom: the rest keep only their move
+    np.testing.assert_array_equal(atom_paths(steps, nx=8, max_points=5), paths[:5])
+    assert atom_paths(np.zeros((0, 2), dtype=np.int32), nx=8).shape == (0, 3)

@@ -38,6 +38,14 @@ class RunOut(BaseModel):
     shots: int
 
 
+class AtomPathOut(BaseModel):
+    source: int = Field(description="the trap index the atom started the cycle in")
+    points: list[list[float]] = Field(
+        description="[row, column] in sites of each corner of its route, start to end; a half (3.5) is the "
+        "channel between two rows or columns of traps (interstitial routing)"
+    )
+
+
 class RunCycleOut(BaseModel):
     index: int
     occupancy: list[str]
@@ -51,6 +59,11 @@ class RunCycleOut(BaseModel):
     atoms_moved: int
     pickups: int | None = Field(default=None, description="atoms the plan took into a tweezer (null: not recorded)")
     moves: list[list[int]] = Field(description="[source, destination] trap index of every atom the plan moved")
+    paths: list[AtomPathOut] = Field(
+        default_factory=list,
+        description="the route of each moved atom as its corner points, start to end ([] in older run files; "
+        "atoms past a bound per cycle keep only their move)",
+    )
     counts: list[float] | None = Field(description="the image's PSF-weighted sums per trap (null: not recorded)")
     frame: bool = Field(
         default=False, description="its camera frame is kept (GET /api/runs/{name}/shots/{index}/frames/{cycle})"

@@ -273,7 +273,16 @@ class Engine:
             if gc_was_enabled:
                 gc.enable()
         record.duration_s = clock.now_s() - record.t_start_s
+        # The shot ends here: the lab reads its truth and the sequencer hears the array is ready before the
+        # records are built (moves, routes, pick-ups: milliseconds of Python on a bulk plan that would otherwise
+        # be vacuum time for every target atom between the last image and the experiment).
         cycle_reports = self.lab.cycle_reports(n_cycles) if self.lab is not None else [{} for _ in range(n_cycles)]
+        if self.lab is not None:
+            record.lab_report = self.lab.shot_report(p.target)
+        try:
+            self.devices.awg.pulse("resume")  # tell the lab's sequencer the array is ready
+        except DeviceError as err:
+            record.fault = record.fault or f"DeviceError: resume pulse: {err}"
         half = positions_per_site(p.config.array.routing)
         for c in range(n_cycles):
             occ = p.history[c].copy()
@@ -303,12 +312,6 @@ class Engine:
                     lab_report=cycle_reports[c],
                 )
             )
-        if self.lab is not None:
-            record.lab_report = self.lab.shot_report(p.target)
-        try:
-            self.devices.awg.pulse("resume")  # tell the lab's sequencer the array is ready
-        except DeviceError as err:
-            record.fault = record.fault or f"DeviceError: resume pulse: {err}"
         self.shots_done += 1
         return record
 

@@ -158,4 +158,24 @@ def test_resume_pulse_after_every_shot_and_hardware_trigger(chain_engine) -> Non
     assert engine.wait_trigger(timeout_s=0.01) is False
     lab.awg.force_trigger()  # the sequencer's line
     assert engine.wait_trigger(timeout_s=0.01) is True
+
+
+def test_the_array_is_reported_ready_before_the_records_are_built(chain_engine, monkeypatch) -> None:
+    """The shot ends at the resume pulse (the experiment starts): building the records (moves, routes,
+    pick-ups: milliseconds on a bulk plan) comes after it, so it is never vacuum time for the target atoms."""
+    import engine.engine as engine_module
+
+    engine, lab = chain_engine
+    resumes_seen: list[int] = []
+    atom_moves = engine_module.atom_moves
+
+    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - wraps the real function
+        resumes_seen.append(sum(1 for line, _ in lab.awg.pulses if line == "resume"))
+        return atom_moves(*args, **kwargs)
+
+    monkeypatch.setattr(engine_module, "atom_moves", spy)
+    before = sum(1 for line, _ in lab.awg.pulses if line == "resume")
+    record = engine.run_shot()
+    assert any(c.moves is not None for c in record.cycles) and resumes_seen
+    assert all(n == before + 1 for n in resumes_seen)  # every record built after this shot's pulse
     assert engine.wait_trigger(timeout_s=0.01) is False  # taken once

@@ -30,6 +30,9 @@ def _lossy_engine() -> tuple[Engine, SimLab]:
             "survival_step": 0.9,
             "vacuum_lifetime_s": 0.5,
             "imaging": {"loss_rate_hz": 5.0},
+            # replay time: the clock moves only by the modelled stages, so reading the world after the shot (the
+            # test's own bound) is the same instant as the lab's end-of-shot report, however slow the machine
+            "time": "replay",
         },
     )
     devices, lab = build_sim_lab(config)

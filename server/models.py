@@ -18,6 +18,7 @@ __all__ = [
     "CalibrationApplyOut",
     "CalibrationApplyRequest",
     "CalibrationRequest",
+    "CycleDiagnostics",
     "CycleOut",
     "PsfCalibrationOut",
     "ThresholdCalibrationOut",
@@ -84,7 +85,10 @@ class ShotSummary(BaseModel):
     images: int = Field(description="camera frames kept with this shot (0 unless images were kept)")
 
 
-class CycleOut(BaseModel):
+class CycleDiagnostics(BaseModel):
+    """What every rearrangement cycle reports, live (``CycleOut``) or read back from a run file
+    (``server.routes.runs.RunCycleOut``): one definition, so the two bodies cannot drift apart."""
+
     index: int
     occupancy: list[str] = Field(description="one string of '0'/'1' per trap row, as detected")
     atoms: int
@@ -94,14 +98,17 @@ class CycleOut(BaseModel):
     n_steps: int
     underruns: int
     latency_us: float
-    atoms_moved: int = Field(0, description="atoms the cycle's plan moved")
-    planner: str = Field(default="", description="the planner that made this cycle's plan; empty: none planned")
-    pickups: int = Field(default=0, description="atoms the cycle's plan took into a tweezer (extracts and captures)")
     truth: dict[str, Any] = Field(
         default_factory=dict,
         description="the simulated lab's report on this cycle: lost_by_cause, atoms its world lost from this "
         "cycle's image to the next, per cause; empty on hardware",
     )
+
+
+class CycleOut(CycleDiagnostics):
+    atoms_moved: int = Field(0, description="atoms the cycle's plan moved")
+    planner: str = Field(default="", description="the planner that made this cycle's plan; empty: none planned")
+    pickups: int = Field(default=0, description="atoms the cycle's plan took into a tweezer (extracts and captures)")
 
 
 class ShotOut(ShotSummary):

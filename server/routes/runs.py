@@ -12,6 +12,7 @@ from fastapi import APIRouter, HTTPException, Path, Query
 from fastapi.responses import FileResponse, Response
 from pydantic import BaseModel, Field
 
+from server.models import CycleDiagnostics
 from server.png import encode_png
 from server.routes.common import ERR, Service
 from server.runstore import RUN_NAME, RunStore
@@ -46,16 +47,7 @@ class AtomPathOut(BaseModel):
     )
 
 
-class RunCycleOut(BaseModel):
-    index: int
-    occupancy: list[str]
-    atoms: int
-    defects: int
-    stage_us: dict[str, float]
-    n_slots: int
-    n_steps: int
-    underruns: int
-    latency_us: float
+class RunCycleOut(CycleDiagnostics):
     atoms_moved: int
     pickups: int | None = Field(default=None, description="atoms the plan took into a tweezer (null: not recorded)")
     moves: list[list[int]] = Field(description="[source, destination] trap index of every atom the plan moved")
@@ -67,11 +59,6 @@ class RunCycleOut(BaseModel):
     counts: list[float] | None = Field(description="the image's PSF-weighted sums per trap (null: not recorded)")
     frame: bool = Field(
         default=False, description="its camera frame is kept (GET /api/runs/{name}/shots/{index}/frames/{cycle})"
-    )
-    truth: dict[str, Any] = Field(
-        default_factory=dict,
-        description="what the lab reported about this cycle: lost_by_cause, the atoms its world lost from this "
-        "cycle's image to the next, per cause (the simulated lab; empty on hardware)",
     )
 
 

@@ -68,25 +68,17 @@ class AODParallelPlanner:
         m = max(nx, ny)
         n_traps = nx * ny
         self._g = np.zeros((m, m), dtype=np.bool_)
-        self._cnt = np.zeros(m, dtype=np.int64)
-        self._cand = np.zeros(m, dtype=np.int64)
-        self._key = np.zeros(m, dtype=np.int64)
-        self._carried = np.zeros(m, dtype=np.int64)
+        # the column balance's scratch (atoms per column, candidate rows, their keys, rows carried in): one
+        # block, each a C-contiguous row of it, as the kernels' signatures expect
+        self._cnt, self._cand, self._key, self._carried = np.zeros((4, m), dtype=np.int64)
         self._st = np.zeros((m, 10), dtype=np.int64)
         self._pos = np.zeros(m, dtype=np.int64)
         self._ob = np.zeros((m, 2), dtype=np.uint64)
         self._prow = np.zeros((m, m), dtype=np.int64)
         self._cm = np.zeros((m, 8), dtype=np.uint64)
-        self._vt = np.zeros((m, 2), dtype=np.uint64)
-        self._ut = np.zeros((m, 2), dtype=np.uint64)
-        self._vb = np.zeros((m, 2), dtype=np.uint64)
-        self._ub = np.zeros((m, 2), dtype=np.uint64)
-        self._sct = np.zeros(m, dtype=np.int64)
-        self._scb = np.zeros(m, dtype=np.int64)
-        self._it = np.zeros(m, dtype=np.int64)
-        self._ib = np.zeros(m, dtype=np.int64)
-        self._tv = np.zeros(m, dtype=np.int64)
-        self._bv = np.zeros(m, dtype=np.int64)
+        # per-column scratch of the Fill scoring, top and bottom alike (one block, as above)
+        self._vt, self._ut, self._vb, self._ub = np.zeros((4, m, 2), dtype=np.uint64)
+        self._sct, self._scb, self._it, self._ib, self._tv, self._bv = np.zeros((6, m), dtype=np.int64)
         self._ptop = np.zeros((8, 2), dtype=np.uint64)
         self._pbot = np.zeros((8, 2), dtype=np.uint64)
         self._cols = np.zeros(m, dtype=np.int64)
@@ -104,12 +96,8 @@ class AODParallelPlanner:
     # -- buffers ---------------------------------------------------------------------------------------
     def _alloc_records(self, *, n_batches: int, n_tones: int, n_steps: int) -> None:
         self._bmeta = np.zeros((n_batches, 6), dtype=np.int64)
-        self._brow = np.zeros(n_tones, dtype=np.int64)
-        self._brs = np.zeros(n_tones, dtype=np.int64)
-        self._brm = np.zeros(n_tones, dtype=np.int64)
-        self._bcol = np.zeros(n_tones, dtype=np.int64)
-        self._bcs = np.zeros(n_tones, dtype=np.int64)
-        self._bcm = np.zeros(n_tones, dtype=np.int64)
+        # the batches' tone lists (row: index, start, move; column: the same), one C-contiguous row each
+        self._brow, self._brs, self._brm, self._bcol, self._bcs, self._bcm = np.zeros((6, n_tones), dtype=np.int64)
         self._steps = np.zeros((n_steps, 2), dtype=np.int32)
 
     def _warm_up(self) -> None:

@@ -381,6 +381,11 @@ class LoopConfig(_Model):
 
     max_cycles: Annotated[int, Field(ge=1, le=100)] = 5
     trigger: Literal["software", "hardware"] = "software"
+    keep_frames: bool = Field(
+        default=False,
+        description="attach every cycle's camera frame to the shot record (run files keep them as llrs serve "
+        "--keep-frames says); each is copied while the next exposure runs, off the latency path",
+    )
     watchdog_factor: Annotated[float, Field(ge=1, le=1000)] = Field(
         default=4.0,
         description="a shot running longer than this multiple of the longest healthy shot (every cycle's frame "

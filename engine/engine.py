@@ -129,6 +129,8 @@ class _Pipeline:
     steps_history: list[np.ndarray | None]  # each cycle's plan steps, copied once its playback has started
     slots_history: list[tuple[np.ndarray, ...] | None]  # each cycle's plan slots, for the pick-ups after the shot
     in_flight_history: list[list[list[list[int]]]]  # per cycle, per underrun: the atoms its failsafe held
+    kept_frames: np.ndarray | None = None  # uint16[max_cycles + 1, h, w] this shot's frames (loop.keep_frames)
+    frames_read: int = 0  # cycles of this shot whose frame has arrived
 
 
 class Engine:
@@ -241,6 +243,9 @@ class Engine:
         p.steps_history[:] = [None] * len(p.steps_history)
         p.slots_history[:] = [None] * len(p.slots_history)
         p.in_flight_history[:] = [[] for _ in p.in_flight_history]
+        p.frames_read = 0
+        n_slots = p.config.loop.max_cycles + 1
+        p.kept_frames = np.empty((n_slots, *p.image.shape), dtype=np.uint16) if p.config.loop.keep_frames else None
         latencies = np.zeros(p.config.loop.max_cycles + 1)
         cycle_times = np.zeros((p.config.loop.max_cycles + 1, 2))  # cycle began, image in memory (clock s)
         plan_stats = np.zeros((p.config.loop.max_cycles + 1, 4), dtype=np.int64)  # slots, steps, underruns, pick-ups
@@ -283,6 +288,10 @@ class Engine:
             self.devices.awg.pulse("resume")  # tell the lab's sequencer the array is ready
         except DeviceError as err:
             record.fault = record.fault or f"DeviceError: resume pulse: {err}"
+        if p.kept_frames is not None and p.frames_read:
+            if p.frames_read == n_cycles:  # the last cycle's frame arrived whole (a failed read is not kept)
+                p.kept_frames[n_cycles - 1] = p.image
+            record.images = list(p.kept_frames[: p.frames_read])
         half = positions_per_site(p.config.array.routing)
         for c in range(n_cycles):
             occ = p.history[c].copy()
@@ -348,8 +357,11 @@ class Engine:
         cycle_times[cycle, 0] = timer.start()
         dev.awg.pulse("camera")
         dev.camera.trigger()
+        if p.kept_frames is not None and cycle > 0:
+            p.kept_frames[cycle - 1] = p.image  # the last cycle's frame, copied while the camera exposes
         self._rehearse(p)
         dev.camera.read(p.image, timeout_s=p.config.camera.timeout_s)
+        p.frames_read = cycle + 1
         p.streamer.realtime.enter()  # image to last link at real-time priority (engine.streaming)
         t_image = timer.lap("I.acquire")
         cycle_times[cycle, 1] = t_image

@@ -70,7 +70,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--runs-dir", default="runs", help="where the HDF5 run files go (default ./runs)")
     p.add_argument("--keep-frames", type=int, default=0, metavar="N",
                    help="keep the camera frames of every Nth shot in the run files (0: none, the default; 1: every "
-                   "shot): every cycle's where the engine kept them, else the shot's final frame; gzip-compressed")
+                   "shot): every cycle's when the configuration sets loop.keep_frames, else the shot's final "
+                   "frame; gzip-compressed")
     p.add_argument("--keep-frames-mib", type=float, default=256.0, metavar="MIB",
                    help="at most this many MiB of raw frames per run file (default 256)")
     p.add_argument("--pause", type=float, default=0.5, help="pause between continuous shots in seconds (default 0.5)")

@@ -16,6 +16,7 @@ from conftest import lossless
 from drivers.sim.lab import build_sim_lab
 from engine.config import SystemConfig
 from engine.engine import Engine, EngineThread
+from engine.imaging import Detector
 from engine.records import Outcome
 from engine.solvers import PlannerError
 from engine.timing import STAGES
@@ -179,3 +180,21 @@ def test_the_array_is_reported_ready_before_the_records_are_built(chain_engine, 
     assert any(c.moves is not None for c in record.cycles) and resumes_seen
     assert all(n == before + 1 for n in resumes_seen)  # every record built after this shot's pulse
     assert engine.wait_trigger(timeout_s=0.01) is False  # taken once
+
+
+def test_kept_frames_are_the_frames_each_cycle_detected(lossless_chain: SystemConfig) -> None:
+    """loop.keep_frames attaches every cycle's camera frame: summed by the detector, each gives exactly the
+    counts that cycle recorded, and the last is the engine's last frame."""
+    config = lossless(lossless_chain, seed=11)
+    config = config.model_copy(update={"loop": config.loop.model_copy(update={"keep_frames": True})})
+    devices, lab = build_sim_lab(config)
+    engine = Engine(config, devices, lab=lab)
+    detector = Detector(config)
+    for _ in range(3):
+        record = engine.run_shot()
+        assert record.images is not None and len(record.images) == len(record.cycles) >= 1
+        for cycle, frame in zip(record.cycles, record.images, strict=True):
+            assert frame.shape == devices.camera.frame_shape and frame.dtype == np.uint16
+            detector.sum(frame)
+            assert np.array_equal(detector.counts, cycle.counts)
+        assert np.array_equal(record.images[-1], engine.last_frame())

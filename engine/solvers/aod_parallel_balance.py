@@ -157,126 +157,119 @@ def _balance(
                 donor = x
                 best_dist = dist
                 best_sur = sur
-        if donor < 0:  # no straight row: a vertical move in a donor first
-            nb, nrr, ncr, n_steps, ok = _relay_one(
-                g, cnt, nr, recv, h_rows, c0, c1, nc, cand, transposed, nx_real,
-                bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
-            )  # fmt: skip
-            if nb < 0:
-                return OVERFLOW, nb, nrr, ncr, n_steps
-            if not ok:
-                return STUCK, nb, nrr, ncr, n_steps
-            continue
-        m = min(worst, best_sur)
-        s = 1 if recv > donor else -1
-        # relay plan: the m cheapest rows (target rows of the receiver first on ties)
-        n_rel = 0
-        for r in range(nr):
-            cost = _relay_cost(g, donor, recv, r)
-            if cost > 0:
-                key[r] = cost * 2 + (0 if r0 <= r < r1 else 1)
-                cand[n_rel] = r
-                n_rel += 1
-        for i in range(1, n_rel):  # ascending cost
-            v = cand[i]
-            q = i - 1
-            while q >= 0 and key[cand[q]] > key[v]:
-                cand[q + 1] = cand[q]
-                q -= 1
-            cand[q + 1] = v
-        n_rel = min(n_rel, m)
-        relay_slots = 0
-        for i in range(n_rel):
-            relay_slots += key[cand[i]] >> 1
-        hop_slots = 3 * best_dist  # at best one 3-slot hop per column
-        if n_rel == m and relay_slots <= hop_slots:
-            for i in range(n_rel):
-                carried[i] = cand[i]
-            for i in range(n_rel):
-                nb, nrr, ncr, n_steps = _relay(
-                    g, donor, recv, carried[i], cand, transposed, nx_real,
-                    bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
-                )  # fmt: skip
-                if nb < 0:
-                    return OVERFLOW, nb, nrr, ncr, n_steps
-            cnt[donor] -= n_rel
-            cnt[recv] += n_rel
-            continue
-        j = donor
-        for r in range(nr):
-            carried[r] = 0
-        while j != recv and m > 0:
-            remaining = recv - j if recv > j else j - recv
-            n_cand = 0
+        if donor >= 0:
+            m = min(worst, best_sur)
+            s = 1 if recv > donor else -1
+            # relay plan: the m cheapest rows (target rows of the receiver first on ties)
+            n_rel = 0
             for r in range(nr):
-                if g[j, r] and not g[j + s, r]:
-                    ln = 1
-                    while ln < remaining and not g[j + (ln + 1) * s, r]:
-                        ln += 1
-                    bonus = 0
-                    if carried[r]:
-                        bonus += 4
-                    if ln == remaining and r0 <= r < r1:
-                        bonus += 2
-                    if j == donor and not (r0 <= r < r1):
-                        bonus += 1
-                    key[r] = ln * 8 + bonus
-                    cand[n_cand] = r
-                    n_cand += 1
-            if n_cand == 0:
-                # this hop is blocked: bring the rest by relays on the next round (the receiver still lacks)
-                break
-            _sort_desc(cand, n_cand, key)
-            take = min(m, n_cand)
-            d = remaining
-            for i in range(take):
-                ln = key[cand[i]] >> 3
-                if ln < d:
-                    d = ln
-            for i in range(1, take):  # ascending rows for the tone list
+                cost = _relay_cost(g, donor, recv, r)
+                if cost > 0:
+                    key[r] = cost * 2 + (0 if r0 <= r < r1 else 1)
+                    cand[n_rel] = r
+                    n_rel += 1
+            for i in range(1, n_rel):  # ascending cost
                 v = cand[i]
                 q = i - 1
-                while q >= 0 and cand[q] > v:
+                while q >= 0 and key[cand[q]] > key[v]:
                     cand[q + 1] = cand[q]
                     q -= 1
                 cand[q + 1] = v
-            if nb >= bmeta.shape[0] or nrr + take > brow.shape[0] or ncr + 1 > bcol.shape[0]:
-                return OVERFLOW, nb, nrr, ncr, n_steps
-            if n_steps + take * d > steps.shape[0]:
-                return OVERFLOW, nb, nrr, ncr, n_steps
-            first_row, first_col = nrr, ncr
-            for i in range(take):
-                nrr = _put_tone(brow, brs, brm, nrr, cand[i], 0, 0)
-            ncr = _put_tone(bcol, bcs, bcm, ncr, j, s, d)
-            _close_batch(bmeta, nb, first_row, nrr, first_col, ncr, d, K_HOP)
-            nb += 1
-            for t in range(d):
-                for i in range(take):
-                    r = cand[i]
-                    steps[n_steps, 0] = _flat(j + t * s, r, transposed, nx_real)
-                    steps[n_steps, 1] = _flat(j + (t + 1) * s, r, transposed, nx_real)
-                    n_steps += 1
+            n_rel = min(n_rel, m)
+            relay_slots = 0
+            for i in range(n_rel):
+                relay_slots += key[cand[i]] >> 1
+            hop_slots = 3 * best_dist  # at best one 3-slot hop per column
+            if n_rel == m and relay_slots <= hop_slots:
+                for i in range(n_rel):
+                    carried[i] = cand[i]
+                for i in range(n_rel):
+                    nb, nrr, ncr, n_steps = _relay(
+                        g, donor, recv, carried[i], cand, transposed, nx_real,
+                        bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+                    )  # fmt: skip
+                    if nb < 0:
+                        return OVERFLOW, nb, nrr, ncr, n_steps
+                cnt[donor] -= n_rel
+                cnt[recv] += n_rel
+                continue
+            j = donor
             for r in range(nr):
                 carried[r] = 0
-            for i in range(take):
-                r = cand[i]
-                g[j, r] = False
-                g[j + d * s, r] = True
-                carried[r] = 1
-            cnt[j] -= take
-            cnt[j + d * s] += take
-            j += d * s
-            m = take
-        if j != recv:
-            # a blocked chain: the next round prefers a relay (hops into this receiver failed)
-            nb, nrr, ncr, n_steps, ok = _relay_one(
-                g, cnt, nr, recv, h_rows, c0, c1, nc, cand, transposed, nx_real,
-                bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
-            )  # fmt: skip
-            if nb < 0:
-                return OVERFLOW, nb, nrr, ncr, n_steps
-            if not ok:
-                return STUCK, nb, nrr, ncr, n_steps
+            while j != recv and m > 0:
+                remaining = recv - j if recv > j else j - recv
+                n_cand = 0
+                for r in range(nr):
+                    if g[j, r] and not g[j + s, r]:
+                        ln = 1
+                        while ln < remaining and not g[j + (ln + 1) * s, r]:
+                            ln += 1
+                        bonus = 0
+                        if carried[r]:
+                            bonus += 4
+                        if ln == remaining and r0 <= r < r1:
+                            bonus += 2
+                        if j == donor and not (r0 <= r < r1):
+                            bonus += 1
+                        key[r] = ln * 8 + bonus
+                        cand[n_cand] = r
+                        n_cand += 1
+                if n_cand == 0:
+                    # this hop is blocked: bring the rest by relays on the next round (the receiver still lacks)
+                    break
+                _sort_desc(cand, n_cand, key)
+                take = min(m, n_cand)
+                d = remaining
+                for i in range(take):
+                    ln = key[cand[i]] >> 3
+                    if ln < d:
+                        d = ln
+                for i in range(1, take):  # ascending rows for the tone list
+                    v = cand[i]
+                    q = i - 1
+                    while q >= 0 and cand[q] > v:
+                        cand[q + 1] = cand[q]
+                        q -= 1
+                    cand[q + 1] = v
+                if nb >= bmeta.shape[0] or nrr + take > brow.shape[0] or ncr + 1 > bcol.shape[0]:
+                    return OVERFLOW, nb, nrr, ncr, n_steps
+                if n_steps + take * d > steps.shape[0]:
+                    return OVERFLOW, nb, nrr, ncr, n_steps
+                first_row, first_col = nrr, ncr
+                for i in range(take):
+                    nrr = _put_tone(brow, brs, brm, nrr, cand[i], 0, 0)
+                ncr = _put_tone(bcol, bcs, bcm, ncr, j, s, d)
+                _close_batch(bmeta, nb, first_row, nrr, first_col, ncr, d, K_HOP)
+                nb += 1
+                for t in range(d):
+                    for i in range(take):
+                        r = cand[i]
+                        steps[n_steps, 0] = _flat(j + t * s, r, transposed, nx_real)
+                        steps[n_steps, 1] = _flat(j + (t + 1) * s, r, transposed, nx_real)
+                        n_steps += 1
+                for r in range(nr):
+                    carried[r] = 0
+                for i in range(take):
+                    r = cand[i]
+                    g[j, r] = False
+                    g[j + d * s, r] = True
+                    carried[r] = 1
+                cnt[j] -= take
+                cnt[j + d * s] += take
+                j += d * s
+                m = take
+            if j == recv:
+                continue
+        # no straight row (no donor): a vertical move in a donor first; a blocked chain: the next round
+        # prefers a relay (hops into this receiver failed)
+        nb, nrr, ncr, n_steps, ok = _relay_one(
+            g, cnt, nr, recv, h_rows, c0, c1, nc, cand, transposed, nx_real,
+            bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
+        )  # fmt: skip
+        if nb < 0:
+            return OVERFLOW, nb, nrr, ncr, n_steps
+        if not ok:
+            return STUCK, nb, nrr, ncr, n_steps
 
 
 @njit(cache=True, nogil=True)

@@ -120,77 +120,43 @@ def _tone(kind, k, n_sites, cyc, amp, phi, shp, scale, inv_q, out):
 
 @njit(cache=True, nogil=True)
 def _lookup_chain(kind, x_site, x_delta, first, count, keys, key_of):
-    """Chain (``trap_source = "aod"``) slots ``first..first+count-1`` to keys; returns 0, or ``code + 16 * slot``
-    on an invalid slot or ``_E_ARRAY`` / ``_E_KEYS`` when the plan's row or ``keys`` does not fit the bank.
-
-    Slot j's keys start at ``j * (2 + nx)``: ``[n_movers, 0, one key per mover...]`` (see ``_lookup_slm``
-    for the key encoding). A mover's kind (inner, head, tail, isolated; up or down) depends on the tones
-    before and after it in the slot's list, which the loop carries along (each tone is read once) and
-    combines with arithmetic and selects rather than branches: which variant a mover is follows the atoms,
-    not a pattern the branch predictor could learn.
-    """
-    nx = x_site.shape[1]
-    stride = 2 + nx
-    if nx != key_of.shape[1]:
-        return _E_ARRAY
-    if keys.shape[0] < count * stride:
-        return _E_KEYS
-    for j in range(count):
-        i = first + j
-        kb = j * stride
-        kd = kind[i]
-        keys[kb] = 0
-        keys[kb + 1] = 0
-        if kd == IDLE:
-            continue
-        if kd != SHIFT:
-            return _E_CHAIN_KIND + 16 * i
-        m = 0
-        kp, dp = -2, 0  # the tone before (none yet: a site no tone can start from or reach)
-        k, d = x_site[i, 0], x_delta[i, 0]
-        for t in range(nx):
-            if k < 0:
-                break
-            kn, dn = (x_site[i, t + 1], x_delta[i, t + 1]) if t + 1 < nx else (-1, 0)  # the tone after
-            if k >= nx:
-                return _E_SITE + 16 * i
-            if d < -1 or d > 1:
-                return _E_DELTA + 16 * i
-            if k + d < 0 or k + d >= nx:
-                return _E_EDGE + 16 * i
-            if k <= kp:
-                return _E_ORDER + 16 * i
-            if k + d <= kp + dp:
-                return _E_CROSS + 16 * i
-            if d != 0:
-                up = d > 0
-                # head: the site ahead is not a source, so it is entered and fades out
-                head = (kn if up else kp) != k + d
-                # tail: no tone behind moves in the same way, so the vacated site fades in
-                tail = ((kp if up else kn) != k - d) | ((dp if up else dn) != d)
-                # INNER_UP, INNER_DOWN, HEAD_UP, ..., ISO_DOWN in that order: + 2 head + 4 tail + 1 down
-                keys[kb + 2 + m] = key_of[INNER_UP + 2 * head + 4 * tail + (1 - up), k]
-                m += 1
-            kp, dp = k, d
-            k, d = kn, dn
-        keys[kb] = m
-    return 0
+    """Chain (``trap_source = "aod"``) slots ``first..first+count-1`` to keys (``_lookup_slots``); a chain has
+    one axis, as wide as ``key_of``, and no prefix rows: the slm arguments it passes are never read."""
+    return _lookup_slots(
+        kind, x_site, x_delta, x_site, x_delta, first, count, keys, key_of, key_of[0], key_of.shape[1], 0, True
+    )
 
 
 @njit(cache=True, nogil=True)
 def _lookup_slm(kind, x_site, x_delta, y_site, y_delta, first, count, keys, key_of, prow_of, nx, ny):
-    """slm slots ``first..first+count-1`` to keys; returns 0, or ``code + 16 * slot`` on an invalid slot
-    or ``_E_ARRAY`` / ``_E_KEYS`` when the plan's array or ``keys`` does not fit the bank.
+    """slm slots ``first..first+count-1`` to keys (``_lookup_slots``)."""
+    return _lookup_slots(kind, x_site, x_delta, y_site, y_delta, first, count, keys, key_of, prow_of, nx, ny, False)
 
-    Slot j's keys start at ``j * (2 + nx + ny)``: ``[n_ch0, n_ch1, ch0 keys..., ch1 keys...]``. A key in
-    ``[0, _RUN0)`` is a table row; a negative key ``-(code + 1)`` is synthesized directly,
-    ``code = (axis * N_KINDS + kind) * n_max + site`` (``key_of`` holds both, by ``[axis * N_KINDS + kind,
-    site]``); a key ``>= _RUN0`` is a run of consecutive sites ``[a, b)`` of one (axis, kind) with a prefix
-    block: ``_RUN0 + (p_b << _RUN_SHIFT) + p_a``, with ``p_a``, ``p_b`` rows of the prefix table. A run
-    replaces two or more single keys, so a slot never has more keys than tones and the stride stays a bound.
+
+@njit(cache=True, nogil=True, inline="always")
+def _lookup_slots(kind, x_site, x_delta, y_site, y_delta, first, count, keys, key_of, prow_of, nx, ny, chain):
+    """Slots ``first..first+count-1`` to keys; returns 0, or ``code + 16 * slot`` on an invalid slot or
+    ``_E_ARRAY`` / ``_E_KEYS`` when the plan's array or ``keys`` does not fit the bank.
+
+    Slot j's keys start at ``j * (2 + nx + ny)``: two counts, then the keys. One slot loop for a chain and
+    for slm, so that the slot layout, idle slots and the error codes have one home; each kernel above inlines
+    it with ``chain`` a constant, so the branch it does not take is compiled away (one kernel with all the
+    arguments cost a chain plan's lookup ~0.3 us more, in the argument dispatch alone).
+
+    A chain slot (``ny = 0``) is ``[n_movers, 0, one key per mover...]``. A mover's kind (inner, head, tail,
+    isolated; up or down) depends on the tones before and after it in the slot's list, which the loop carries
+    along (each tone is read once) and combines with arithmetic and selects rather than branches: which
+    variant a mover is follows the atoms, not a pattern the branch predictor could learn.
+
+    An slm slot is ``[n_ch0, n_ch1, ch0 keys..., ch1 keys...]``. A key in ``[0, _RUN0)`` is a table row; a
+    negative key ``-(code + 1)`` is synthesized directly, ``code = (axis * N_KINDS + kind) * n_max + site``
+    (``key_of`` holds both, by ``[axis * N_KINDS + kind, site]``; a chain's movers are keyed the same way); a
+    key ``>= _RUN0`` is a run of consecutive sites ``[a, b)`` of one (axis, kind) with a prefix block:
+    ``_RUN0 + (p_b << _RUN_SHIFT) + p_a``, with ``p_a``, ``p_b`` rows of the prefix table. A run replaces two
+    or more single keys, so a slot never has more keys than tones and the stride stays a bound.
     """
     stride = 2 + nx + ny
-    if x_site.shape[1] != nx or y_site.shape[1] != ny:
+    if x_site.shape[1] != nx or (not chain and y_site.shape[1] != ny):
         return _E_ARRAY
     if keys.shape[0] < count * stride:
         return _E_KEYS
@@ -200,60 +166,93 @@ def _lookup_slm(kind, x_site, x_delta, y_site, y_delta, first, count, keys, key_
         kd = kind[i]
         keys[kb] = 0
         keys[kb + 1] = 0
-        m = 0
         if kd == IDLE:
             continue
-        if kd != EXTRACT and kd != SHIFT and kd != IMPLANT:
-            return _E_KIND + 16 * i
-        for axis in range(2):
-            sites = x_site if axis == 0 else y_site
-            deltas = x_delta if axis == 0 else y_delta
-            n_ax = nx if axis == 0 else ny
-            m_axis = m
-            run_m = 0  # key position, first site, length and kind of the run being built
-            run_a = 0
-            run_len = 0
-            run_kind = -1
-            for t in range(n_ax):
-                k = sites[i, t]
+        if chain:
+            if kd != SHIFT:
+                return _E_CHAIN_KIND + 16 * i
+            m = 0
+            kp, dp = -2, 0  # the tone before (none yet: a site no tone can start from or reach)
+            k, d = x_site[i, 0], x_delta[i, 0]
+            for t in range(nx):
                 if k < 0:
                     break
-                if k >= n_ax:
+                kn, dn = (x_site[i, t + 1], x_delta[i, t + 1]) if t + 1 < nx else (-1, 0)  # the tone after
+                if k >= nx:
                     return _E_SITE + 16 * i
-                if t > 0 and k <= sites[i, t - 1]:
+                if d < -1 or d > 1:
+                    return _E_DELTA + 16 * i
+                if k + d < 0 or k + d >= nx:
+                    return _E_EDGE + 16 * i
+                if k <= kp:
                     return _E_ORDER + 16 * i
-                if kd == EXTRACT:
-                    tk = RAMP_UP
-                elif kd == IMPLANT:
-                    tk = RAMP_DOWN
-                else:
-                    d = deltas[i, t]
-                    if d < -1 or d > 1:
-                        return _E_DELTA + 16 * i
-                    if k + d < 0 or k + d >= n_ax:
-                        return _E_EDGE + 16 * i
-                    if t > 0 and k + d <= sites[i, t - 1] + deltas[i, t - 1]:
-                        return _E_CROSS + 16 * i
-                    tk = STATIC if d == 0 else (MOVE_UP if d > 0 else MOVE_DOWN)
-                p0 = prow_of[axis * N_KINDS + tk]
-                if p0 >= 0 and run_len > 0 and tk == run_kind and k == run_a + run_len:
-                    run_len += 1
-                    keys[kb + 2 + run_m] = _RUN0 + ((p0 + run_a + run_len) << _RUN_SHIFT) + (p0 + run_a)
-                    m = run_m + 1
-                else:
-                    run_m = m
-                    run_a = k
-                    run_len = 1
-                    run_kind = tk
-                    keys[kb + 2 + m] = key_of[axis * N_KINDS + tk, k]
+                if k + d <= kp + dp:
+                    return _E_CROSS + 16 * i
+                if d != 0:
+                    up = d > 0
+                    # head: the site ahead is not a source, so it is entered and fades out
+                    head = (kn if up else kp) != k + d
+                    # tail: no tone behind moves in the same way, so the vacated site fades in
+                    tail = ((kp if up else kn) != k - d) | ((dp if up else dn) != d)
+                    # INNER_UP, INNER_DOWN, HEAD_UP, ..., ISO_DOWN in that order: + 2 head + 4 tail + 1 down
+                    keys[kb + 2 + m] = key_of[INNER_UP + 2 * head + 4 * tail + (1 - up), k]
                     m += 1
-            keys[kb + axis] = m - m_axis
+                kp, dp = k, d
+                k, d = kn, dn
+            keys[kb] = m
+        else:
+            m = 0
+            if kd != EXTRACT and kd != SHIFT and kd != IMPLANT:
+                return _E_KIND + 16 * i
+            for axis in range(2):
+                sites = x_site if axis == 0 else y_site
+                deltas = x_delta if axis == 0 else y_delta
+                n_ax = nx if axis == 0 else ny
+                m_axis = m
+                run_m = 0  # key position, first site, length and kind of the run being built
+                run_a = 0
+                run_len = 0
+                run_kind = -1
+                for t in range(n_ax):
+                    k = sites[i, t]
+                    if k < 0:
+                        break
+                    if k >= n_ax:
+                        return _E_SITE + 16 * i
+                    if t > 0 and k <= sites[i, t - 1]:
+                        return _E_ORDER + 16 * i
+                    if kd == EXTRACT:
+                        tk = RAMP_UP
+                    elif kd == IMPLANT:
+                        tk = RAMP_DOWN
+                    else:
+                        d = deltas[i, t]
+                        if d < -1 or d > 1:
+                            return _E_DELTA + 16 * i
+                        if k + d < 0 or k + d >= n_ax:
+                            return _E_EDGE + 16 * i
+                        if t > 0 and k + d <= sites[i, t - 1] + deltas[i, t - 1]:
+                            return _E_CROSS + 16 * i
+                        tk = STATIC if d == 0 else (MOVE_UP if d > 0 else MOVE_DOWN)
+                    p0 = prow_of[axis * N_KINDS + tk]
+                    if p0 >= 0 and run_len > 0 and tk == run_kind and k == run_a + run_len:
+                        run_len += 1
+                        keys[kb + 2 + run_m] = _RUN0 + ((p0 + run_a + run_len) << _RUN_SHIFT) + (p0 + run_a)
+                        m = run_m + 1
+                    else:
+                        run_m = m
+                        run_a = k
+                        run_len = 1
+                        run_kind = tk
+                        keys[kb + 2 + m] = key_of[axis * N_KINDS + tk, k]
+                        m += 1
+                keys[kb + axis] = m - m_axis
     return 0
 
 
 @njit(cache=True, nogil=True)
 def _failsafe_keys(kind, x_site, x_delta, y_site, y_delta, i, keys, key_of, prow_of, nx, ny):
-    """Keys (one slot, as ``_lookup_slm``) of steady full tones where slm slot ``i`` leaves them."""
+    """Keys (one slot, as ``_lookup_slots``) of steady full tones where slm slot ``i`` leaves them."""
     keys[0] = 0
     keys[1] = 0
     kd = kind[i]

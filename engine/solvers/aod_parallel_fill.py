@@ -390,6 +390,20 @@ def _compress_alone(
 
 
 @njit(cache=True, nogil=True)
+def _short_column(st: np.ndarray, lo: int, hi: int, first: bool) -> int:
+    """A column of ``lo..hi-1`` that still needs top or bottom Fills: the first, or the neediest (the largest
+    of the two needs, the first on ties); -1 if none."""
+    pick = int(-1)  # noqa: UP018  # a call, not a literal: see plan_rect's counters
+    for c in range(lo, hi):
+        if st[c, _T] > 0 or st[c, _B] > 0:
+            if first:
+                return c
+            if pick < 0 or max(st[c, _T], st[c, _B]) > max(st[pick, _T], st[pick, _B]):
+                pick = c
+    return pick
+
+
+@njit(cache=True, nogil=True)
 def _load_column(g: np.ndarray, c: int, nr: int, ob: np.ndarray, prow: np.ndarray, st: np.ndarray) -> None:
     """Occupancy bits, sorted atom rows and atom count of column ``c`` from ``g``."""
     ob[c, 0] = 0
@@ -459,37 +473,32 @@ def _fill_phase(
     # re-chosen windows make the greedy's progress hard to bound, so cap its batches; past the cap (never
     # reached on random fillings) every column still short is compressed on its own, which always finishes
     budget = 2 * nr * (c1 - c0) + 64
+    alone_from = c0  # once the budget is spent: the columns from here on are compressed on their own, in turn
     while True:
         budget -= 1
-        if budget < 0:
-            for c in range(c0, c1):
-                if st[c, _T] > 0 or st[c, _B] > 0:
-                    nb, nrr, ncr, n_steps = _compress_alone(
-                        g, ob, c, nr, r0, h_rows, st[c, _K], pos, transposed, nx_real,
-                        bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
-                    )  # fmt: skip
-                    if nb < 0:
-                        return OVERFLOW, nb, nrr, ncr, n_steps
-            return OK, nb, nrr, ncr, n_steps
-        n_t = _top_k(sct, 1, nr, it, tv, k_best)
-        n_b = _top_k(scb, 0, nr - 1, ib, bv, k_best)
+        spent = budget < 0
+        n_t = int(0)  # noqa: UP018  # a call, not a literal: see plan_rect's counters
+        n_b = int(0)  # noqa: UP018  # (the same)
+        if not spent:
+            n_t = _top_k(sct, 1, nr, it, tv, k_best)
+            n_b = _top_k(scb, 0, nr - 1, ib, bv, k_best)
         if n_t == 0 and n_b == 0:
-            worst = int(-1)  # noqa: UP018  # a call, not a literal: see plan_rect's counters
-            for c in range(c0, c1):
-                if st[c, _T] > 0 or st[c, _B] > 0:
-                    if worst < 0 or max(st[c, _T], st[c, _B]) > max(st[worst, _T], st[worst, _B]):
-                        worst = c
-            if worst < 0:
+            # no Fill helps anyone (not seen in practice), or the budget is spent: compress a short column on
+            # its own, the neediest (the greedy then goes on), or once spent each short column in turn
+            c = _short_column(st, alone_from, c1, spent)
+            if c < 0:
                 return OK, nb, nrr, ncr, n_steps
-            # no Fill helps anyone (not seen in practice): compress the neediest column on its own
             nb, nrr, ncr, n_steps = _compress_alone(
-                g, ob, worst, nr, r0, h_rows, st[worst, _K], pos, transposed, nx_real,
+                g, ob, c, nr, r0, h_rows, st[c, _K], pos, transposed, nx_real,
                 bmeta, nb, brow, brs, brm, nrr, bcol, bcs, bcm, ncr, steps, n_steps,
             )  # fmt: skip
             if nb < 0:
                 return OVERFLOW, nb, nrr, ncr, n_steps
-            _load_column(g, worst, nr, ob, prow, st)
-            _col_update(worst, nr, nwr, r0, r1, dyn, ob, prow, st, cm, vt, ut, vb, ub, sct, scb, ptop, pbot)
+            if spent:
+                alone_from = c + 1
+            else:
+                _load_column(g, c, nr, ob, prow, st)
+                _col_update(c, nr, nwr, r0, r1, dyn, ob, prow, st, cm, vt, ut, vb, ub, sct, scb, ptop, pbot)
             continue
         best = 0
         best_h = 0

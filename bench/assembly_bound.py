@@ -60,6 +60,7 @@ __all__ = [
     "bound_model",
     "format_bound_table",
     "register",
+    "reserve_cost",
     "route_sites",
     "run_bound",
     "run_bound_shot",
@@ -89,9 +90,10 @@ class BoundModel:
     plan_s: float  # host stages from solving to the start of playback
     slot_s: float
     max_cycles: int
+    reserve_sites: int = 0  # first cycle: spare atoms this close to the target charged extra (``reserve_cost``)
 
 
-def bound_model(cell: Cell, *, loading: float = 0.6, max_cycles: int = 5) -> BoundModel:
+def bound_model(cell: Cell, *, loading: float = 0.6, max_cycles: int = 5, reserve_sites: int = 0) -> BoundModel:
     """The cell's model from the same configuration ``llrs bench assembly`` runs (``bench.assembly.cell_config``)."""
     if cell.problem not in GRID_PROBLEMS:
         raise ValueError(f"the bound routes atoms between rows and columns: choose a grid, {', '.join(GRID_PROBLEMS)}")
@@ -119,6 +121,7 @@ def bound_model(cell: Cell, *, loading: float = 0.6, max_cycles: int = 5) -> Bou
         plan_s=sum(REPLAY_HOST_S.values()) - host_image,
         slot_s=cfg.waveforms.slot_duration_s,
         max_cycles=max_cycles,
+        reserve_sites=reserve_sites,
     )
 
 
@@ -129,6 +132,18 @@ def route_sites(spare: np.ndarray, holes: np.ndarray) -> np.ndarray:
     dr = np.abs(holes[:, None, 0] - spare[None, :, 0])
     dc = np.abs(holes[:, None, 1] - spare[None, :, 1])
     return dr + dc + ((dr == 0) | (dc == 0))
+
+
+def reserve_cost(spare: np.ndarray, target: np.ndarray, reserve_sites: int) -> np.ndarray:
+    """Extra one-site steps charged to each spare atom the first cycle uses, to keep a reserve near the target for
+    the later cycles' repairs: ``reserve_sites + 1 - distance`` for a spare atom ``distance`` sites (Manhattan)
+    from the nearest target trap, none beyond. The lead's idealised Monte Carlo suggested it pays; this tool
+    measures that it does not (docs/benchmarks.md), hence an option, off by default."""
+    if reserve_sites <= 0 or spare.shape[0] == 0:
+        return np.zeros(spare.shape[0])
+    sites = np.argwhere(target)
+    distance = (np.abs(spare[:, None, :] - sites[None, :, :]).sum(axis=2)).min(axis=1)
+    return np.maximum(0, reserve_sites + 1 - distance).astype(float)
 
 
 def assign_spares(cost: np.ndarray) -> np.ndarray:
@@ -177,7 +192,10 @@ def run_bound_shot(model: BoundModel, rng: np.random.Generator) -> dict[str, Any
         if rearrangements == model.max_cycles or spare.shape[0] < holes.shape[0]:
             break
         sites = route_sites(spare, holes)
-        chosen = assign_spares(2 * ln_transfer + (ln_step or 1.0) * sites)  # lossless: the fewest sites
+        cost = 2 * ln_transfer + (ln_step or 1.0) * sites  # lossless: the fewest sites
+        if rearrangements == 0 and model.reserve_sites:
+            cost = cost + (ln_step or 1.0) * reserve_cost(spare, target, model.reserve_sites)[None, :]
+        chosen = assign_spares(cost)
         sites = sites[np.arange(holes.shape[0]), chosen]
         src = spare[chosen]
         occ[src[:, 0], src[:, 1]] = False
@@ -200,13 +218,15 @@ def run_bound_shot(model: BoundModel, rng: np.random.Generator) -> dict[str, Any
     }
 
 
-def run_bound(cell: Cell, *, shots: int, seed: int = 1, loading: float = 0.6, max_cycles: int = 5) -> list[dict]:
+def run_bound(
+    cell: Cell, *, shots: int, seed: int = 1, loading: float = 0.6, max_cycles: int = 5, reserve_sites: int = 0
+) -> list[dict]:
     """Every shot of a cell, shot ``j`` seeded from ``(seed, j)``."""
-    model = bound_model(cell, loading=loading, max_cycles=max_cycles)
+    model = bound_model(cell, loading=loading, max_cycles=max_cycles, reserve_sites=reserve_sites)
     return [run_bound_shot(model, np.random.default_rng(s)) for s in shot_seeds(seed, shots)]
 
 
-def summarize_bound(cell: Cell, shots: Sequence[dict[str, Any]]) -> dict[str, Any]:
+def summarize_bound(cell: Cell, shots: Sequence[dict[str, Any]], *, reserve_sites: int = 0) -> dict[str, Any]:
     """One table row: success with its 95 % Wilson interval, cycles, time to array, atoms lost per cycle."""
     n = len(shots)
     filled = sum(s["filled"] for s in shots)
@@ -215,6 +235,7 @@ def summarize_bound(cell: Cell, shots: Sequence[dict[str, Any]]) -> dict[str, An
     total_cycles = max(int(cycles.sum()), 1)
     return {
         **cell.label(),
+        "reserve_sites": reserve_sites,
         "shots": n,
         "success": filled / n if n else math.nan,
         "success_ci95": list(wilson_interval(filled, n)),
@@ -229,9 +250,10 @@ def summarize_bound(cell: Cell, shots: Sequence[dict[str, Any]]) -> dict[str, An
 def format_bound_table(rows: Sequence[dict[str, Any]]) -> str:
     """The rows as a markdown table (what docs/benchmarks.md quotes)."""
     lines = [
-        "| problem | loss (transfer/step) | lifetime s | image survival | shots | bound: success % [95 % CI] "
+        "| problem | loss (transfer/step) | lifetime s | image survival | reserve sites | shots "
+        "| bound: success % [95 % CI] "
         "| cycles mean / p90 | time to array ms median / p90 | lost per cycle: " + " / ".join(LOST_CAUSES) + " |",
-        "|" + "---|" * 9,
+        "|" + "---|" * 10,
     ]
     for r in rows:
         lo, hi = r["success_ci95"]
@@ -239,7 +261,8 @@ def format_bound_table(rows: Sequence[dict[str, Any]]) -> str:
         times = f"{t_med:.1f} / {t_p90:.1f}" if t_med is not None else "-"
         lost = " / ".join(f"{r['lost_per_cycle'][c]:.2f}" for c in LOST_CAUSES)
         lines.append(
-            f"| {r['problem']} | {r['loss']} | {r['lifetime_s']:g} | {r['image_survival']:g} | {r['shots']} "
+            f"| {r['problem']} | {r['loss']} | {r['lifetime_s']:g} | {r['image_survival']:g} | {r['reserve_sites']} "
+            f"| {r['shots']} "
             f"| {100 * r['success']:5.1f} [{100 * lo:5.1f}, {100 * hi:5.1f}] "
             f"| {r['cycles_mean']:.2f} / {r['cycles_p90']:.0f} | {times} | {lost} |"
         )
@@ -258,8 +281,8 @@ def _cmd(args: argparse.Namespace) -> int:
                 for image in _csv(args.image_survival):
                     cell = Cell(problem, None, loss, float(lifetime), float(image))
                     shots = run_bound(cell, shots=args.shots, seed=args.seed, loading=args.loading,
-                                      max_cycles=args.max_cycles)  # fmt: skip
-                    rows.append(summarize_bound(cell, shots))
+                                      max_cycles=args.max_cycles, reserve_sites=args.reserve)  # fmt: skip
+                    rows.append(summarize_bound(cell, shots, reserve_sites=args.reserve))
     if args.json:
         print(json.dumps({"shots_per_cell": args.shots, "seed": args.seed, "rows": rows}))
     else:
@@ -279,5 +302,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=1, help="base seed: shot j of every cell is seeded from (seed, j)")
     p.add_argument("--loading", type=float, default=0.6, help="loading probability (default 0.6)")
     p.add_argument("--max-cycles", type=int, default=5, help="rearrangement cycles at most (default 5)")
+    p.add_argument(
+        "--reserve", type=int, default=0,
+        help="first cycle: charge spare atoms within this many sites of the target extra steps (default 0: off)",
+    )  # fmt: skip
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     p.set_defaults(func=_cmd)

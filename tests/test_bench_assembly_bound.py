@@ -10,7 +10,15 @@ import numpy as np
 import pytest
 
 from bench.assembly import Cell
-from bench.assembly_bound import assign_spares, bound_model, register, route_sites, run_bound, summarize_bound
+from bench.assembly_bound import (
+    assign_spares,
+    bound_model,
+    register,
+    reserve_cost,
+    route_sites,
+    run_bound,
+    summarize_bound,
+)
 
 
 def test_route_sites_counts_the_half_steps_into_a_channel_and_out() -> None:
@@ -62,3 +70,11 @@ def test_the_command_prints_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert args.func(args) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["rows"][0]["success"] == 1.0 and out["rows"][0]["shots"] == 2
+
+
+def test_the_reserve_charges_spare_atoms_near_the_target_only() -> None:
+    target = np.zeros((4, 8), dtype=bool)
+    target[:, 3:5] = True
+    spare = np.array([[0, 2], [1, 1], [2, 0], [3, 7]])
+    assert reserve_cost(spare, target, 2).tolist() == [2.0, 1.0, 0.0, 0.0]
+    assert reserve_cost(spare, target, 0).tolist() == [0.0] * 4

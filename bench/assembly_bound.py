@@ -38,7 +38,6 @@ shots. Numpy and scipy only; 200 shots of 32x64 take seconds.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -47,7 +46,17 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from bench.assembly import LOSS_MODELS, PROBLEMS, Cell, cell_config, shot_seeds, wilson_interval
+from bench.assembly import (
+    PROBLEMS,
+    Cell,
+    add_cell_arguments,
+    cell_config,
+    csv_list,
+    outcome_cells,
+    outcome_figures,
+    print_rows,
+    shot_seeds,
+)
 from drivers.sim.move_loss import move_survival, trap_parameters
 from drivers.sim.readout import readout_time
 from engine.targets import build_target
@@ -228,23 +237,7 @@ def run_bound(
 
 def summarize_bound(cell: Cell, shots: Sequence[dict[str, Any]], *, reserve_sites: int = 0) -> dict[str, Any]:
     """One table row: success with its 95 % Wilson interval, cycles, time to array, atoms lost per cycle."""
-    n = len(shots)
-    filled = sum(s["filled"] for s in shots)
-    cycles = np.array([s["rearrangements"] for s in shots], dtype=float)
-    times = np.array([s["time_to_array_s"] for s in shots if s["time_to_array_s"] is not None], dtype=float)
-    total_cycles = max(int(cycles.sum()), 1)
-    return {
-        **cell.label(),
-        "reserve_sites": reserve_sites,
-        "shots": n,
-        "success": filled / n if n else math.nan,
-        "success_ci95": list(wilson_interval(filled, n)),
-        "cycles_mean": float(cycles.mean()) if n else math.nan,
-        "cycles_p90": float(np.percentile(cycles, 90)) if n else math.nan,
-        "time_to_array_ms_median": float(np.median(times) * 1e3) if times.size else None,
-        "time_to_array_ms_p90": float(np.percentile(times, 90) * 1e3) if times.size else None,
-        "lost_per_cycle": {c: sum(s["lost"][c] for s in shots) / total_cycles for c in LOST_CAUSES},
-    }
+    return {**cell.label(), "reserve_sites": reserve_sites, **outcome_figures(shots, LOST_CAUSES)}
 
 
 def format_bound_table(rows: Sequence[dict[str, Any]]) -> str:
@@ -256,52 +249,32 @@ def format_bound_table(rows: Sequence[dict[str, Any]]) -> str:
         "|" + "---|" * 10,
     ]
     for r in rows:
-        lo, hi = r["success_ci95"]
-        t_med, t_p90 = r["time_to_array_ms_median"], r["time_to_array_ms_p90"]
-        times = f"{t_med:.1f} / {t_p90:.1f}" if t_med is not None else "-"
-        lost = " / ".join(f"{r['lost_per_cycle'][c]:.2f}" for c in LOST_CAUSES)
+        c = outcome_cells(r, LOST_CAUSES)
         lines.append(
             f"| {r['problem']} | {r['loss']} | {r['lifetime_s']:g} | {r['image_survival']:g} | {r['reserve_sites']} "
-            f"| {r['shots']} "
-            f"| {100 * r['success']:5.1f} [{100 * lo:5.1f}, {100 * hi:5.1f}] "
-            f"| {r['cycles_mean']:.2f} / {r['cycles_p90']:.0f} | {times} | {lost} |"
+            f"| {r['shots']} | {c['success']} | {c['cycles']} | {c['times']} | {c['lost']} |"
         )
     return "\n".join(lines)
 
 
-def _csv(text: str) -> list[str]:
-    return [t.strip() for t in text.split(",") if t.strip()]
-
-
 def _cmd(args: argparse.Namespace) -> int:
     rows = []
-    for problem in _csv(args.problems):
-        for loss in _csv(args.loss):
-            for lifetime in _csv(args.lifetime):
-                for image in _csv(args.image_survival):
+    for problem in csv_list(args.problems):
+        for loss in csv_list(args.loss):
+            for lifetime in csv_list(args.lifetime):
+                for image in csv_list(args.image_survival):
                     cell = Cell(problem, None, loss, float(lifetime), float(image))
                     shots = run_bound(cell, shots=args.shots, seed=args.seed, loading=args.loading,
                                       max_cycles=args.max_cycles, reserve_sites=args.reserve)  # fmt: skip
                     rows.append(summarize_bound(cell, shots, reserve_sites=args.reserve))
-    if args.json:
-        print(json.dumps({"shots_per_cell": args.shots, "seed": args.seed, "rows": rows}))
-    else:
-        print(format_bound_table(rows))
-    return 0
+    return print_rows(args, rows, format_bound_table)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "assembly-bound", help="what an idealised planner (no AOD constraints) could reach on an assembly cell"
     )
-    p.add_argument("--problems", default="32x64", help=f"comma-separated, from {', '.join(GRID_PROBLEMS)}")
-    p.add_argument("--loss", default="0.995/0.999", help=f"comma-separated, from {', '.join(LOSS_MODELS)}")
-    p.add_argument("--lifetime", default="6000", help="comma-separated vacuum lifetimes in s (default 6000)")
-    p.add_argument("--image-survival", default="1", help="comma-separated survival per image (default 1: lossless)")
-    p.add_argument("--shots", type=int, default=200, help="shots per cell (default 200)")
-    p.add_argument("--seed", type=int, default=1, help="base seed: shot j of every cell is seeded from (seed, j)")
-    p.add_argument("--loading", type=float, default=0.6, help="loading probability (default 0.6)")
-    p.add_argument("--max-cycles", type=int, default=5, help="rearrangement cycles at most (default 5)")
+    add_cell_arguments(p, GRID_PROBLEMS)
     p.add_argument(
         "--reserve", type=int, default=0,
         help="first cycle: charge spare atoms within this many sites of the target extra steps (default 0: off)",

@@ -6,8 +6,11 @@ no exposure blur), fills every hole of the target with one spare atom by a minim
 ``linear_sum_assignment`` over the expected atoms lost per route), and moves every atom at once on its own
 interstitial route, as if each had its own tweezer (no AOD product sets, no tone crossings, no groups played
 one after the other). Atoms already in the target are never touched. Comparing a planner's ``llrs bench
-assembly`` row with this one says how much of the gap to a target is planning and how much is physics: a
-target above the bound is out of reach of any planner under this loss model.
+assembly`` row with this one says how much of the gap to a target is planning within a cycle and how much is
+physics. It is optimal per cycle, not over a shot: a bulk planner that loses more atoms in its first cycle but
+packs the spare atoms against the target (red-rec's column shifts) filled as often at 0.985/0.985
+(docs/benchmarks.md, "Issue 13: the bound"), so a target above the bound needs less loss or a different
+strategy across cycles, not a better plan of each cycle.
 
 What it charges is the simulated world's loss model (``drivers/sim/world.py``) for the routes the interstitial
 repair planner plays (``engine/solvers/interstitial.py``):

@@ -26,7 +26,7 @@ import argparse
 import json
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,10 +41,15 @@ __all__ = [
     "PROBLEMS",
     "Cell",
     "CellResult",
+    "add_cell_arguments",
     "cell_config",
+    "csv_list",
     "format_table",
     "register",
     "run_cells",
+    "outcome_cells",
+    "outcome_figures",
+    "print_rows",
     "run_chunk",
     "shot_seeds",
     "summarize",
@@ -193,6 +198,26 @@ class CellResult:
     error: str | None = None
 
 
+def outcome_figures(shots: Sequence[dict[str, Any]], causes: Sequence[str]) -> dict[str, Any]:
+    """What every assembly table reports of a cell's shots (``filled``, ``rearrangements``, ``time_to_array_s``,
+    ``lost`` by cause): success with its 95 % Wilson interval, cycles, time to array and atoms lost per cycle."""
+    n = len(shots)
+    filled = sum(s["filled"] for s in shots)
+    cycles = np.array([s["rearrangements"] for s in shots], dtype=float)
+    times = np.array([s["time_to_array_s"] for s in shots if s["time_to_array_s"] is not None], dtype=float)
+    total_cycles = max(int(cycles.sum()), 1)
+    return {
+        "shots": n,
+        "success": filled / n if n else float("nan"),
+        "success_ci95": list(wilson_interval(filled, n)),
+        "cycles_mean": float(cycles.mean()) if n else float("nan"),
+        "cycles_p90": float(np.percentile(cycles, 90)) if n else float("nan"),
+        "time_to_array_ms_median": float(np.median(times) * 1e3) if times.size else None,
+        "time_to_array_ms_p90": float(np.percentile(times, 90) * 1e3) if times.size else None,
+        "lost_per_cycle": {c: sum(s["lost"][c] for s in shots) / total_cycles for c in causes},
+    }
+
+
 def summarize(result: CellResult) -> dict[str, Any]:
     """One table row from a cell's shot summaries (all shots counted, faults included)."""
     row: dict[str, Any] = result.cell.label()
@@ -200,24 +225,12 @@ def summarize(result: CellResult) -> dict[str, Any]:
         return {**row, "error": result.error}
     shots = result.shots
     n = len(shots)
-    filled = sum(s["filled"] for s in shots)
-    lo, hi = wilson_interval(filled, n)
-    cycles = np.array([s["rearrangements"] for s in shots], dtype=float)
-    times = np.array([s["time_to_array_s"] for s in shots if s["time_to_array_s"] is not None], dtype=float)
-    total_cycles = max(int(cycles.sum()), 1)
     bound = float(np.mean([s["vacuum_bound"] for s in shots])) if shots else float("nan")
     return {
         **row,
-        "shots": n,
-        "success": filled / n if n else float("nan"),
-        "success_ci95": [lo, hi],
+        **outcome_figures(shots, LOSS_CAUSES),
         "engine_believed": sum(s["engine_success"] for s in shots) / n if n else float("nan"),
-        "cycles_mean": float(cycles.mean()) if n else float("nan"),
-        "cycles_p90": float(np.percentile(cycles, 90)) if n else float("nan"),
-        "time_to_array_ms_median": float(np.median(times) * 1e3) if times.size else None,
-        "time_to_array_ms_p90": float(np.percentile(times, 90) * 1e3) if times.size else None,
         "vacuum_bound": bound,
-        "lost_per_cycle": {c: sum(s["lost"][c] for s in shots) / total_cycles for c in LOSS_CAUSES},
         "underruns": sum(s["underruns"] for s in shots),
         "faults": sum(1 for s in shots if s["fault"]),
     }
@@ -277,6 +290,17 @@ def _pct(x: float) -> str:
     return f"{100 * x:5.1f}"
 
 
+def outcome_cells(r: dict[str, Any], causes: Sequence[str]) -> dict[str, str]:
+    """``outcome_figures`` as table cells: success [CI] %, cycles mean / p90, times median / p90, lost by cause."""
+    t_med, t_p90 = r["time_to_array_ms_median"], r["time_to_array_ms_p90"]
+    return {
+        "success": f"{_pct(r['success'])} [{_pct(r['success_ci95'][0])}, {_pct(r['success_ci95'][1])}]",
+        "cycles": f"{r['cycles_mean']:.2f} / {r['cycles_p90']:.0f}",
+        "times": f"{t_med:.1f} / {t_p90:.1f}" if t_med is not None else "-",
+        "lost": " / ".join(f"{r['lost_per_cycle'][c]:.2f}" for c in causes),
+    }
+
+
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     """The rows as a markdown table (what docs/benchmarks.md quotes)."""
     head = (
@@ -294,61 +318,69 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
         if "error" in r:
             lines.append(label + f"| - | refused: {r['error']} | | | | | |")
             continue
-        t_med, t_p90 = r["time_to_array_ms_median"], r["time_to_array_ms_p90"]
-        times = f"{t_med:.1f} / {t_p90:.1f}" if t_med is not None else "-"
-        lost = " / ".join(f"{r['lost_per_cycle'][c]:.2f}" for c in LOSS_CAUSES)
+        c = outcome_cells(r, LOSS_CAUSES)
         lines.append(
-            label + f"| {r['shots']} | {_pct(r['success'])} "
-            f"[{_pct(r['success_ci95'][0])}, {_pct(r['success_ci95'][1])}] "
-            f"| {_pct(r['engine_believed'])} | {r['cycles_mean']:.2f} / {r['cycles_p90']:.0f} | {times} "
-            f"| {_pct(r['vacuum_bound'])} | {lost} |"
+            label + f"| {r['shots']} | {c['success']} | {_pct(r['engine_believed'])} | {c['cycles']} | {c['times']} "
+            f"| {_pct(r['vacuum_bound'])} | {c['lost']} |"
         )
     return "\n".join(lines)
 
 
-def _csv(text: str) -> list[str]:
+def csv_list(text: str) -> list[str]:
+    """A comma-separated option as its items."""
     return [t.strip() for t in text.split(",") if t.strip()]
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    planners: list[str | None] = [None if p == "example" else p for p in _csv(args.planners)]
+    planners: list[str | None] = [None if p == "example" else p for p in csv_list(args.planners)]
     cells = [
         Cell(problem=problem, planner=planner, loss=loss, lifetime_s=float(lifetime), image_survival=float(image))
-        for problem in _csv(args.problems)
+        for problem in csv_list(args.problems)
         for planner in planners
-        for loss in _csv(args.loss)
-        for lifetime in _csv(args.lifetime)
-        for image in _csv(args.image_survival)
+        for loss in csv_list(args.loss)
+        for lifetime in csv_list(args.lifetime)
+        for image in csv_list(args.image_survival)
     ]
     results = run_cells(
         cells, shots=args.shots, seed=args.seed, chunk=args.chunk, loading=args.loading,
         max_cycles=args.max_cycles, scheduler=args.scheduler, workers=args.workers,
     )
-    rows = [summarize(r) for r in results]
+    return print_rows(args, [summarize(r) for r in results], format_table)
+
+
+def print_rows(
+    args: argparse.Namespace, rows: list[dict[str, Any]], table: Callable[[list[dict[str, Any]]], str]
+) -> int:
+    """Print the rows as one JSON object (``--json``) or as ``table`` formats them; the command's exit status."""
     if args.json:
         print(json.dumps({"shots_per_cell": args.shots, "seed": args.seed, "rows": rows}))
     else:
-        print(format_table(rows))
+        print(table(rows))
     return 0
+
+
+def add_cell_arguments(p: argparse.ArgumentParser, problems: Iterable[str]) -> None:
+    """The options that choose cells and shots, shared by ``assembly`` and ``assembly-bound``."""
+    p.add_argument("--problems", default="32x64", help=f"comma-separated, from {', '.join(problems)} (default 32x64)")
+    p.add_argument("--loss", default="0.995/0.999", help=f"comma-separated, from {', '.join(LOSS_MODELS)}")
+    p.add_argument("--lifetime", default="6000", help="comma-separated vacuum lifetimes in s (default 6000)")
+    p.add_argument("--image-survival", default="1", help="comma-separated survival per image (default 1: lossless)")
+    p.add_argument("--shots", type=int, default=200, help="shots per cell (default 200)")
+    p.add_argument("--seed", type=int, default=1, help="base seed: shot j of every cell is seeded from (seed, j)")
+    p.add_argument("--loading", type=float, default=0.6, help="loading probability (default 0.6)")
+    p.add_argument("--max-cycles", type=int, default=5, help="rearrangement cycles at most (default 5)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("assembly", help="closed-loop success and time to a defect-free array, on a dask cluster")
-    p.add_argument("--problems", default="32x64", help=f"comma-separated, from {', '.join(PROBLEMS)} (default 32x64)")
+    add_cell_arguments(p, PROBLEMS)
     p.add_argument(
         "--planners", default="example",
         help="comma-separated planners ALGORITHM[>REPAIR@DEFECTS][:OBJECTIVE][/ROUTING], e.g. "
         "red-rec>repair@64:survival/interstitial (ROUTING: array.routing, lattice or interstitial); "
         "'example': the example's own",
     )  # fmt: skip
-    p.add_argument("--loss", default="0.995/0.999", help=f"comma-separated, from {', '.join(LOSS_MODELS)}")
-    p.add_argument("--lifetime", default="6000", help="comma-separated vacuum lifetimes in s (default 6000)")
-    p.add_argument("--image-survival", default="1", help="comma-separated survival per image (default 1: lossless)")
-    p.add_argument("--shots", type=int, default=200, help="shots per cell (default 200)")
-    p.add_argument("--seed", type=int, default=1, help="base seed: shot j of every cell is seeded from (seed, j)")
     p.add_argument("--chunk", type=int, default=20, help="shots per dask task (default 20)")
-    p.add_argument("--loading", type=float, default=0.6, help="loading probability (default 0.6)")
-    p.add_argument("--max-cycles", type=int, default=5, help="rearrangement cycles at most (default 5)")
     p.add_argument("--scheduler", default=None, help="dask scheduler address (default: a local cluster)")
     p.add_argument("--workers", type=int, default=None, help="local cluster workers (default: one per core)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")

@@ -201,7 +201,11 @@ class EngineProcess(EngineCommands):
             with self._pending_lock:
                 self._pending.pop(ident, None)
             unpicklable = isinstance(err, (pickle.PicklingError, AttributeError, TypeError))
-            future.set_exception(err if unpicklable else EngineProcessDied(str(err)))
+            if unpicklable:
+                future.set_exception(err)
+            else:  # the child died before the results thread noticed: name how it ended, not the pipe
+                self._wait_briefly()
+                future.set_exception(EngineProcessDied(self.exit_reason or str(err)))
         return future
 
     def close(self, *, timeout_s: float = 10.0) -> None:
@@ -220,6 +224,14 @@ class EngineProcess(EngineCommands):
             self._conn.close()
         if self.cpu is not None and hasattr(os, "sched_setaffinity"):
             os.sched_setaffinity(0, os.sched_getaffinity(0) | {self.cpu})
+
+    def _wait_briefly(self) -> None:
+        """Give a child whose pipe just broke a moment to be reaped, so its exit code is known."""
+        if self._process is not None:
+            try:
+                self._process.wait(timeout=1)
+            except subprocess.TimeoutExpired:
+                pass
 
     def _kill(self) -> None:
         if self._process is not None and self._process.poll() is None:

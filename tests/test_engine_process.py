@@ -94,6 +94,22 @@ def test_a_dead_child_fails_pending_and_later_commands_and_the_service_recovers(
         assert service._et is not old and service._et.alive
 
 
+def test_a_command_sent_into_a_dead_childs_pipe_names_how_the_child_ended(
+    lossless_chain: SystemConfig, wait_until: Callable
+) -> None:
+    """The race the service can lose: the child is gone but the results thread has not yet said so. The
+    command then breaks the pipe, and the error must still say the child was killed, not "Broken pipe"."""
+    host = EngineProcess(partial(build_engine, lossless_chain)).start(timeout_s=120)
+    try:
+        os.kill(host.pid, signal.SIGKILL)
+        wait_until(lambda: host.exit_reason is not None and host._dead is not None, what="the child's death")
+        host._dead = None  # as if the results thread had not noticed yet
+        with pytest.raises(EngineProcessDied, match="signal 9"):
+            host.submit(shot_with_frame).result(timeout=10)
+    finally:
+        host.close()
+
+
 def test_an_injected_fault_crosses_the_boundary_and_clears(
     engine_process: EngineProcess, lossless_chain: SystemConfig
 ) -> None:

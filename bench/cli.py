@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 
-from bench import assembly, chain_plan, imaging, load, redrec, runtime, soak, solvers, streaming
+from bench import assembly, chain_plan, imaging, jitter, load, redrec, runtime, soak, solvers, streaming
 
 __all__ = ["register"]
 
 
 def register(bench_sub: argparse._SubParsersAction) -> None:
     """Add every benchmark's subcommand to ``llrs bench``."""
-    for module in (runtime, load, soak, solvers, assembly, chain_plan, imaging, redrec, streaming):
+    for module in (runtime, load, soak, solvers, assembly, chain_plan, imaging, redrec, streaming, jitter):
         module.register(bench_sub)

@@ -519,9 +519,9 @@ class SimAWG:
                 if self._pass_index < info.loops or latched:
                     horizon = t_end
             skip = max(0, int((horizon - t_end) // dur) - 1)
-        if skip:  # whole passes of the same data: queued as one entry (a steady one moves nothing)
-            n_slots = seg.data.shape[0] // self.decoder.slot_samples
-            self._played.append((seg, t_end, 0, n_slots, skip, False))
+        if skip:  # whole passes of the same data (the pass's own): one entry (a steady one moves nothing)
+            n_slots = self._pass_seg.data.shape[0] // self.decoder.slot_samples
+            self._played.append((self._pass_seg, t_end, 0, n_slots, skip, False))
             self._log[-1].repeats += skip
             self._pass_index += skip
             t_end += skip * dur

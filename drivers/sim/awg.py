@@ -21,8 +21,9 @@ and the loss reports call it first), ``wait_for_step``, ``pulse``, ``start``, ``
 A real card decodes nothing; decoding on the engine's thread while it streams took, for 64x128 (803 kB
 segments), ~4.4 ms of the engine's core per 0.64 ms of playback at its real-time priority and evicted its caches
 between renders (a 32-slot render ~480 us in the loop against ~275 us out of it). The atoms end exactly where
-they did: vacuum hits are drawn per site in advance (``World.elapse_to`` applies those due, whenever it is
-called), and moves and their losses are applied in the same order at the same times, so a seed replays.
+they did: vacuum hits are drawn per site in advance and applied earliest first (``World.elapse_to`` applies
+those due, however the calls split the time), and moves and their losses are applied in the same order at
+the same times, so a seed replays.
 
 Memory writes cost device time on the clock (``clock.advance``): an upload ``nbytes / upload_bytes_per_s +
 |N(0, upload_jitter_s)|`` (+ the ``upload_delay_s`` fault knob), a step write ``step_write_s``. A write takes
@@ -30,8 +31,8 @@ effect when it completes; playback before that sees the old contents. In ``realt
 decoded during the upload and the wall time that takes is charged against the modelled upload time, so the
 simulator's own work does not make the host look late (if decoding takes longer than the modelled upload, the
 upload takes that long). In ``simulated`` mode the clock stands still while the simulator works, and a
-segment is decoded when it first plays: decoding ~400 kB of samples at upload would evict the CPU caches in
-the middle of the host's latency-critical path, which a real card's DMA does not do.
+segment is decoded when the world is next brought up to date (above): decoding at upload, or while the host
+streams, would evict its caches in the middle of its latency-critical path, which a real card's DMA does not do.
 """
 
 from __future__ import annotations

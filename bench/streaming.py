@@ -31,13 +31,13 @@ from engine.operations import Operations
 from engine.targets import build_target
 from server.serve import engine_cpu_arg
 
-__all__ = ["register", "stream_plans", "streaming_figures"]
+__all__ = ["problem_plans", "register", "stream_plans", "streaming_figures"]
 
 #: Segment sizes of the paper's figure (waveforms per segment).
 DEFAULT_SIZES = (4, 8, 16, 32, 64)
 
 
-def _plans(config: SystemConfig, n: int) -> list[Operations]:
+def problem_plans(config: SystemConfig, n: int) -> list[Operations]:
     """The plans of ``n`` solvable random fillings of ``config``'s array for its planner and target."""
     from engine.solvers import solve  # deferred on purpose: planners load only when the benchmark runs
 
@@ -180,7 +180,7 @@ def _cmd(args: argparse.Namespace) -> int:
         raise SystemExit(f"llrs bench streaming: --growth factors must be >= 1 (awg.segment_growth), "
                          f"got {args.growth!r}")
     config = problem_config(args.problem, seed=args.seed)
-    plans = _plans(config, args.plans)
+    plans = problem_plans(config, args.plans)
     allowed = os.sched_getaffinity(0) if args.engine_cpu is not None else None
     with cpu_hogs(args.cpu_hogs):
         try:

@@ -55,6 +55,12 @@ holds the core longer than one plan. Where the OS refuses (no ``CAP_SYS_NICE``/`
 at normal priority and says so (``Streamer.realtime_refused``). Each plan's report carries the smallest slack
 the host left the card (``min_slack_s``: how long before the card would have reached a failsafe each link
 arrived), which ``llrs bench streaming`` reports.
+
+**How much lead a host needs** is what ``llrs bench jitter`` measures: the longest stall at this priority in
+each plan-long window, and the lead that fewer than one window in 257 or 1000 exceeds. A longer lead costs
+~0.8 us of latency per us (one more segment's DMA before the first slot); on the 2-vCPU development VM the
+1.1 ms latency bar leaves ~175 us more lead, while one underrun in 1000 cycles would need 0.6-2.3 ms, so the
+lead stays at two segments and the host is what must be quiet (``docs/hardware.md``, "The host").
 """
 
 from __future__ import annotations

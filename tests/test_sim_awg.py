@@ -176,6 +176,7 @@ def test_underrun_falls_into_failsafe_and_resumes() -> None:
     awg.write_step(0, StepInfo(segment=0, next_step=0))
     clock.advance(2e-3)  # the host is late: control 1 played, then its failsafe holds
     assert awg.current_step() == 4
+    awg.sync()  # the streaming calls leave the world to whoever looks (the module docstring)
     assert np.flatnonzero(world.occupancy()[0]).tolist() == [4]
     awg.write_segment(3, seg[2])
     awg.write_step(5, StepInfo(segment=3, next_step=0))
@@ -215,3 +216,30 @@ def test_slm_silence_drops_held_atoms_and_steady_failsafe_keeps_them() -> None:
     clock.advance(2 * cfg.waveforms.slot_duration_s)  # the silent slot has played
     awg.sync()
     assert world.n_atoms == 0 and world.counters.lost_dropped == 1
+
+
+def test_streaming_calls_leave_decoding_and_the_world_to_whoever_looks() -> None:
+    """Uploads, step writes and step reads decode nothing and move no atom (a real card decodes nothing; the
+    engine's core is the host's); ``sync`` then applies every slot played, where and when it played."""
+    atoms = np.zeros(N, bool)
+    atoms[2] = True
+    awg, world, clock = make(atoms=atoms, time_mode="replay")
+    decodes: list[int] = []
+    decode = awg.decoder.decode
+    awg.decoder.decode = lambda samples: decodes.append(len(samples)) or decode(samples)  # type: ignore[method-assign]
+    shift = synth_slots(CFG, [(chain_shift(N, [2], +1), None)])
+    awg.write_segment(0, HOLD)
+    awg.write_segment(1, shift)
+    awg.write_step(0, StepInfo(segment=0, next_step=0))
+    awg.write_step(1, StepInfo(segment=1, next_step=0))
+    awg.start(0)
+    awg.write_step(0, StepInfo(segment=0, next_step=1))  # the hold, then the shift, then the hold again
+    clock.advance(1.1 * SLOT_S)  # the shift is playing
+    awg.write_step(0, StepInfo(segment=0, next_step=0))
+    clock.advance(5 * SLOT_S)
+    assert awg.current_step() == 0 and decodes == []
+    assert np.flatnonzero(world.occupancy()[0]).tolist() == [2]  # not applied yet
+    awg.write_segment(1, HOLD)  # the shift's samples are replaced after it played: the world still sees the shift
+    awg.sync()
+    assert np.flatnonzero(world.occupancy()[0]).tolist() == [3] and world.counters.steps == 1
+    assert [r.step for r in awg.played_steps()] == [0, 1, 0]

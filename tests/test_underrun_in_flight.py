@@ -26,6 +26,7 @@ def test_the_record_names_the_atoms_the_failsafe_holds_and_none_is_lost() -> Non
     def watched_current_step() -> int:
         step = current_step()
         if layout.is_failsafe_step(step):
+            devices.awg.sync()  # the world moves when someone looks (drivers/sim/awg.py)
             held_at_underrun.append(np.flatnonzero(lab.world.held()).tolist())
         return step
 

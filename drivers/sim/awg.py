@@ -9,8 +9,21 @@ out of the step table exactly as on the card.
 Playback is lazy: whenever a method is called (or ``sync()``), playback is advanced to the clock's now. Each
 pass of a segment is decoded from its samples (``drivers/sim/decode.py``; the data that was in the segment when
 the pass started) and applied to the world slot by slot, at the time each slot ends; vacuum loss runs on the
-same clock. A segment that changes nothing (every tone steady) is applied once per visit, and self-loops over
-it are fast-forwarded in O(1), so seconds of idle cost nothing.
+same clock. A segment that changes nothing (every tone steady) is applied once per visit, and self-loops are
+fast-forwarded in O(1), so seconds of idle cost nothing.
+
+**The world waits until someone looks.** Which step plays when follows from the step table and the clock alone;
+only the atoms need the decoded samples. So the calls a streaming host makes (``start_upload``, ``wait_upload``,
+``write_step``, ``current_step``) advance the step table's playback only and queue the slots played
+(``_played``); the queue is decoded and applied to the world, in order and at the slots' own times, by the
+calls after which the world can be observed or the host waits for the card: ``sync()`` (the camera, the truth
+and the loss reports call it first), ``wait_for_step``, ``pulse``, ``start``, ``stop`` and a reconfiguration.
+A real card decodes nothing; decoding on the engine's thread while it streams took, for 64x128 (803 kB
+segments), ~4.4 ms of the engine's core per 0.64 ms of playback at its real-time priority and evicted its caches
+between renders (a 32-slot render ~480 us in the loop against ~275 us out of it). The atoms end exactly where
+they did: vacuum hits are drawn per site in advance and applied earliest first (``World.elapse_to`` applies
+those due, however the calls split the time), and moves and their losses are applied in the same order at
+the same times, so a seed replays.
 
 Memory writes cost device time on the clock (``clock.advance``): an upload ``nbytes / upload_bytes_per_s +
 |N(0, upload_jitter_s)|`` (+ the ``upload_delay_s`` fault knob), a step write ``step_write_s``. A write takes
@@ -18,8 +31,8 @@ effect when it completes; playback before that sees the old contents. In ``realt
 decoded during the upload and the wall time that takes is charged against the modelled upload time, so the
 simulator's own work does not make the host look late (if decoding takes longer than the modelled upload, the
 upload takes that long). In ``simulated`` mode the clock stands still while the simulator works, and a
-segment is decoded when it first plays: decoding ~400 kB of samples at upload would evict the CPU caches in
-the middle of the host's latency-critical path, which a real card's DMA does not do.
+segment is decoded when the world is next brought up to date (above): decoding at upload, or while the host
+streams, would evict its caches in the middle of its latency-critical path, which a real card's DMA does not do.
 """
 
 from __future__ import annotations
@@ -58,7 +71,7 @@ class PlayRecord:
 
 
 class _Segment:
-    """One version of a segment's contents; decoded lazily, once."""
+    """One version of a segment's contents; decoded lazily, once (when the world is brought up to date)."""
 
     __slots__ = ("data", "decoded", "t_begin_s", "t_ready_s")
 
@@ -113,6 +126,8 @@ class SimAWG:
         if n_channels not in card_rules.CHANNEL_COUNTS:
             raise DeviceError(f"sim AWG: {n_channels} channels requested; the card enables 1, 2 or 4")
         with self._lock:
+            if hasattr(self, "_played"):  # a reconfiguration: the world first sees what was played
+                self._apply_played()
             try:
                 decoder = SampleDecoder(
                     self.system, sample_rate_hz=sample_rate_hz, n_channels=n_channels, full_scale=self.full_scale
@@ -137,6 +152,9 @@ class SimAWG:
             self._fault: str | None = None
             self._last_trigger_s: float | None = None
             self._dma_free_s = -math.inf  # when the DMA engine finishes the uploads queued so far
+            # passes played but not yet applied to the world: (segment, first pass's start s, first slot, end
+            # slot, passes, whether the first of them begins its step's visit); see the module docstring
+            self._played: deque[tuple[_Segment, float, int, int, int, bool]] = deque()
 
     def set_system_config(self, config: SystemConfig) -> None:
         """Adopt a new system configuration (array, tones, waveforms) and reconfigure the card."""
@@ -156,7 +174,7 @@ class SimAWG:
         """Queue a DMA of ``samples`` into segment ``index`` and return at once (one DMA engine: uploads run
         one after another). The data count from when the transfer completes; ``wait_upload`` waits for it."""
         with self._card():
-            self._sync()
+            self._sync(world=False)
             self._check_segment(index, samples)
             if self.fail_next_upload or self.fail_uploads:
                 self.fail_next_upload = False
@@ -192,7 +210,7 @@ class SimAWG:
                     "check upload_bytes_per_s and the segment size"
                 )
             self.clock.advance_to(self._dma_free_s)
-            self._sync()
+            self._sync(world=False)
 
     def _queue(self, t_effective_s: float, index: int, value: _Segment | StepInfo) -> None:
         """Add a memory write that takes effect at ``t_effective_s``, keeping ``_pending`` in time order."""
@@ -224,7 +242,7 @@ class SimAWG:
 
     def write_step(self, index: int, step: StepInfo) -> None:
         with self._card():
-            self._sync()
+            self._sync(world=False)
             problem = card_rules.step_problem(
                 index, step.segment, step.next_step, step.loops, len(self._steps), len(self._segments)
             )
@@ -257,7 +275,7 @@ class SimAWG:
     def current_step(self) -> int:
         """The step playing now, or -1 when stopped."""
         with self._card():
-            self._sync()
+            self._sync(world=False)
             return self._step if self._running else -1
 
     def wait_for_step(self, step: int, *, timeout_s: float) -> None:
@@ -277,6 +295,7 @@ class SimAWG:
                     "check the step table's next pointers"
                 )
             self.clock.advance_to(t_hit)
+            self._apply_played()
             self._raise_fault()
 
     def pulse(self, line: str) -> None:
@@ -361,16 +380,35 @@ class SimAWG:
             self._fault = None
             raise DeviceError(msg)
 
-    def _sync(self) -> None:
+    def _sync(self, *, world: bool = True) -> None:
+        """Advance playback to the clock's now; with ``world``, also apply what was played to the world."""
         now = self.clock.now_s()
         with self.clock.paused():  # replaying playback into the world is the simulator's work, not the card's
             if self._running:
                 self._advance(now)
             else:
                 self._commit_pending(now)
-            self.world.elapse_to(now)
+            if world:
+                self._apply_played()
+                self.world.elapse_to(now)
         if self._running:
             self._raise_fault()
+
+    def _apply_played(self) -> None:
+        """Decode the passes played since the last call and move the world's atoms slot by slot, at the time
+        each slot starts; a repeated pass of a segment that changes nothing (every tone steady) moves nothing."""
+        slot_s = self.decoder.slot_s
+        while self._played:
+            seg, t0, first_slot, end_slot, passes, visit_start = self._played.popleft()
+            dec = self._decoded(seg)
+            if dec.stationary and not visit_start:
+                continue
+            dur = seg.data.shape[0] / self.sample_rate_hz
+            for p in range(passes):
+                t_pass = t0 + p * dur
+                for i in range(first_slot, min(end_slot, dec.n_slots)):
+                    self.world.elapse_to(t_pass + i * slot_s)
+                    self.world.apply_slot(*dec.slot(i))
 
     def _commit_pending(self, t_s: float) -> None:
         """Apply memory writes that have taken effect by ``t_s`` (they are in time order)."""
@@ -419,31 +457,29 @@ class SimAWG:
         self._pass_seg = seg
         self._pass_segment = info.segment
         self._pass_index = 1 if first else self._pass_index + 1
-        dec = self._decoded(seg)
-        # a steady segment changes nothing on a repeat: mark its slots as applied
-        self._slot_done = dec.n_slots if (dec.stationary and not first) else 0
+        self._pass_first = first
+        self._slot_done = 0
 
     def _pass_duration(self) -> float:
         return self._pass_seg.data.shape[0] / self.sample_rate_hz
 
-    def _apply_slots(self, t_until: float) -> None:
-        dec = self._decoded(self._pass_seg)
+    def _play_slots(self, t_until: float) -> None:
+        """Queue the slots of the current pass that have ended by ``t_until`` for the world (``_played``)."""
+        n_slots = self._pass_seg.data.shape[0] // self.decoder.slot_samples
         slot_s = self.decoder.slot_s
-        while self._slot_done < dec.n_slots:
-            i = self._slot_done
-            t_end = self._pass_t0 + (i + 1) * slot_s
-            if t_end > t_until:
-                return
-            self.world.elapse_to(self._pass_t0 + i * slot_s)
-            self.world.apply_slot(*dec.slot(i))
-            self._slot_done = i + 1
+        done = self._slot_done
+        while done < n_slots and self._pass_t0 + (done + 1) * slot_s <= t_until:  # as the pass's end is computed
+            done += 1
+        if done > self._slot_done:
+            self._played.append((self._pass_seg, self._pass_t0, self._slot_done, done, 1, self._pass_first))
+            self._slot_done = done
 
     def _advance(self, t_until: float, stop_at_step: int | None = None) -> float | None:
         """Play until ``t_until``; with ``stop_at_step``, stop when that step is entered and return the time."""
         while self._running:
             dur = self._pass_duration()
             t_end = self._pass_t0 + dur
-            self._apply_slots(min(t_until, t_end))
+            self._play_slots(min(t_until, t_end))
             if t_end > t_until:
                 return None
             self._commit_pending(t_end)
@@ -473,7 +509,7 @@ class SimAWG:
         seg = self._segments[info.segment]
         skip = 0
         steady_loop = info.next_step == self._step or info.on_trigger
-        if seg is self._pass_seg and seg is not None and self._decoded(seg).stationary and steady_loop and dur > 0:
+        if seg is self._pass_seg and seg is not None and steady_loop and dur > 0:
             horizon = t_until
             if self._pending:
                 horizon = min(horizon, self._pending[0][0])
@@ -484,7 +520,9 @@ class SimAWG:
                 if self._pass_index < info.loops or latched:
                     horizon = t_end
             skip = max(0, int((horizon - t_end) // dur) - 1)
-        if skip:
+        if skip:  # whole passes of the same data (the pass's own): one entry (a steady one moves nothing)
+            n_slots = self._pass_seg.data.shape[0] // self.decoder.slot_samples
+            self._played.append((self._pass_seg, t_end, 0, n_slots, skip, False))
             self._log[-1].repeats += skip
             self._pass_index += skip
             t_end += skip * dur

@@ -188,8 +188,11 @@ class EngineProcess(EngineCommands):
 
     def submit(self, command: Callable[[Any], Any]) -> Future[Any]:
         future: Future[Any] = Future()
-        if self._dead is not None or self._conn is None:
-            future.set_exception(EngineProcessDied(self._dead or "the engine process was not started"))
+        # exit_reason, not _dead: the results thread notes the death a moment after the process has ended, and a
+        # command sent in between would fail with a bare "Broken pipe" instead of how the engine died
+        dead = self.exit_reason
+        if dead is not None or self._conn is None:
+            future.set_exception(EngineProcessDied(dead or "the engine process was not started"))
             return future
         ident = next(self._ids)
         with self._pending_lock:

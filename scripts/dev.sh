@@ -55,10 +55,13 @@ case "$cmd" in
         ensure_chromium
         if [ $# -gt 0 ]; then exec "$VENV/bin/python" -m pytest "$@"; fi
         # The whole check, as CI runs it: lint and types, the default suite, then the benchmarks' short smoke
-        # runs (marked ``bench``: left out of the default run because they take tens of seconds).
+        # runs (marked ``bench``: left out of the default run because they take tens of seconds). The default
+        # suite runs on every core (pytest-xdist), a whole test file to one worker so that each file's
+        # module-scoped fixtures (servers, closed-loop runs) are built once; the smoke runs stay in one process,
+        # since they measure latency under a load of their own.
         "$VENV/bin/ruff" check .
         "$VENV/bin/mypy"
-        "$VENV/bin/python" -m pytest
+        "$VENV/bin/python" -m pytest -n auto --dist loadfile
         exec "$VENV/bin/python" -m pytest -m bench
         ;;
     *)

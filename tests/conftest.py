@@ -7,6 +7,7 @@ Plain helpers that are not fixtures live beside the fakes (``sim_signals.py``, `
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
@@ -22,6 +23,19 @@ if TYPE_CHECKING:
     from server.service import LabService
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Give schemathesis's tests one node id per API operation (``test_x[GET /api/status]``).
+
+    pytest 9.2 builds a test's id from its ``originalname`` and parametrize call, and schemathesis 4 passes the
+    test function's bare name there, so every operation of ``test_server_schema.py`` gets the same id. pytest
+    alone still runs them all, but pytest-xdist schedules by id and would run one operation per test and drop
+    the rest; unique ids also let ``-k``, ``--lf`` and the failure report name the operation."""
+    counts = Counter(item.nodeid for item in items)
+    for item in items:
+        if counts[item.nodeid] > 1 and item.parent is not None and "[" in item.name:
+            item._id = type(item._id).parse(f"{item.parent.nodeid}::{item.name}")  # pytest 9.2: a structured NodeId
 
 #: Every fault the simulated lab injects (``sim.faults``) and words the shot's fault reason then contains,
 #: for the engine's fault tests and the server's.

@@ -112,14 +112,23 @@ def test_same_table_on_a_local_cluster_and_on_a_scheduler_started_here(tmp_path:
     repo = str(Path(__file__).resolve().parents[1])  # the processes unpickle tasks that name bench.assembly
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [repo, os.environ.get("PYTHONPATH")]))}
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", *common], env=env)]
+
+    def scheduler_address() -> str | None:
+        """The address in the scheduler's file; ``None`` until the file exists and is whole (the scheduler
+        creates it before it writes it, so a loaded machine can show an empty file)."""
+        try:
+            return json.loads(scheduler_file.read_text())["address"]
+        except (FileNotFoundError, json.JSONDecodeError, KeyError):
+            return None
+
     try:
-        wait_until(scheduler_file.exists, timeout_s=60, what=f"{scheduler_file} to appear")
+        wait_until(scheduler_address, timeout_s=60, what=f"{scheduler_file} to hold the scheduler's address")
         procs.append(
             subprocess.Popen(
                 [dask, "worker", "--nthreads", "1", "--nworkers", "1", "--host", "127.0.0.1", *common], env=env
             )
         )
-        address = json.loads(scheduler_file.read_text())["address"]
+        address = scheduler_address()
         cells = [LOSSLESS, Cell("16x32", "no-such-planner", "lossless", 6000.0)]
         remote = [summarize(r) for r in run_cells(cells, shots=4, seed=5, chunk=2, scheduler=address)]
     finally:

@@ -82,6 +82,9 @@ def create_app(
         summary="Low-latency reconfiguration of optical-tweezer arrays: run shots, change the configuration, "
         "read the history, watch live cycles (websocket /api/live).",
         lifespan=lifespan,
+        # a path is answered as sent or not at all: with slash redirects a run named "/" (``/api/runs/%2F``)
+        # was redirected to the run listing instead of being refused
+        redirect_slashes=False,
     )
     app.state.service = service
     app.state.hub = hub

@@ -146,3 +146,9 @@ def test_hostile_run_names_get_4xx_and_nothing_outside_the_runs_directory(name: 
             if name != real:
                 assert 400 <= r.status_code < 500, (name, route, r.status_code)
     assert re.fullmatch(RUN_NAME, real)
+
+
+def test_a_run_named_slash_is_refused_not_redirected_to_the_listing() -> None:
+    with TestClient(_app) as client:
+        r = client.get("/api/runs/%2F", follow_redirects=False)
+        assert r.status_code == 404, (r.status_code, r.headers.get("location"))

@@ -36,18 +36,30 @@ def instances(mask: np.ndarray, n: int, seed: int) -> list[np.ndarray]:
 
 
 @pytest.mark.parametrize("name", list(MASKS))
-def test_fills_arbitrary_masks_legally_and_fast(name: str) -> None:
+def test_fills_arbitrary_masks_legally(name: str) -> None:
     mask = MASKS[name]
-    solve(instances(mask, 1, 99)[0], mask, algorithm="assignment")  # warm-up (scipy import, buffers)
     for occ in instances(mask, 6, seed=len(name)):
-        t0 = time.perf_counter()
         plan = solve(occ, mask, algorithm="assignment")
-        elapsed = time.perf_counter() - t0
         report = validate(plan, occ, mask, trap_source="slm")
         assert report.occupancy.sum() == occ.sum()
-        assert elapsed < 0.25  # the target is 50 ms on an idle machine; generous here for a busy CI box
         # atoms already in target traps end in target traps, and no target atom is ever lost
         assert report.occupancy[mask].all()
+
+
+@pytest.mark.bench
+@pytest.mark.parametrize("name", list(MASKS))
+def test_assignment_solve_time(name: str) -> None:
+    """A speed figure, so a bench smoke run (one process, after the parallel suite), not a unit test."""
+    mask = MASKS[name]
+    solve(instances(mask, 1, 99)[0], mask, algorithm="assignment")  # warm-up (scipy import, buffers)
+    times_s = []
+    for occ in instances(mask, 6, seed=len(name)):
+        t0 = time.perf_counter()
+        solve(occ, mask, algorithm="assignment")
+        times_s.append(time.perf_counter() - t0)
+    median_s = float(np.median(times_s))
+    print(f"assignment solve, {name}: median {median_s * 1e3:.1f} ms of {len(times_s)}")
+    assert median_s < 0.25  # the target is 50 ms on an idle machine; generous for a busy CI box
 
 
 def test_displacement_near_the_assignment_bound() -> None:

@@ -207,7 +207,7 @@ class EngineProcess(EngineCommands):
             if unpicklable:
                 future.set_exception(err)
             else:  # the child died before the results thread noticed: name how it ended, not the pipe
-                self._wait_briefly()
+                self._reap()
                 future.set_exception(EngineProcessDied(self.exit_reason or str(err)))
         return future
 
@@ -228,13 +228,14 @@ class EngineProcess(EngineCommands):
         if self.cpu is not None and hasattr(os, "sched_setaffinity"):
             os.sched_setaffinity(0, os.sched_getaffinity(0) | {self.cpu})
 
-    def _wait_briefly(self) -> None:
-        """Give a child whose pipe just broke a moment to be reaped, so its exit code is known."""
-        if self._process is not None:
-            try:
-                self._process.wait(timeout=1)
-            except subprocess.TimeoutExpired:
-                pass
+    def _reap(self, timeout_s: float = 1.0) -> int | None:
+        """The exit code of a child whose pipe just closed, waiting ``timeout_s`` for it to be reaped (``None``
+        if it has not ended by then)."""
+        assert self._process is not None
+        try:
+            return self._process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            return None
 
     def _kill(self) -> None:
         if self._process is not None and self._process.poll() is None:
@@ -257,11 +258,7 @@ class EngineProcess(EngineCommands):
                 future.set_result(payload)
             else:
                 future.set_exception(payload)
-        try:
-            code: int | None = self._process.wait(timeout=1)
-        except subprocess.TimeoutExpired:
-            code = None
-        self._dead = _describe_exit(code)
+        self._dead = _describe_exit(self._reap())
         with self._pending_lock:
             pending, self._pending = list(self._pending.values()), {}
         for future in pending:
